@@ -1,0 +1,130 @@
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._custom_types import PRNGKey, Vec3
+from .._encoding import integrated_positional_encoding, positional_encoding
+from .base import AbstractField, FieldOutputs
+
+
+def _dense(in_size: int, out_size: int, *, key: PRNGKey) -> eqx.nn.Linear:
+    # mip-NeRF initialises kernels with Glorot-uniform and biases with zeros.
+    layer = eqx.nn.Linear(in_size, out_size, key=key)
+    weight = jax.nn.initializers.glorot_uniform()(key, (out_size, in_size))
+    return eqx.tree_at(lambda lin: (lin.weight, lin.bias), layer, (weight, jnp.zeros(out_size)))
+
+
+class MipNeRFField(AbstractField):
+    """The mip-NeRF MLP with MixNeRF's scale (`beta`) and ray-depth heads.
+
+    Trunk of `depth` ReLU layers of `width` with the encoded input concatenated after layer
+    `skip_layer`; density from the trunk; a linear bottleneck joined with the encoded view
+    direction; one ReLU layer of `view_width`; colour from it. MixNeRF's heads sit after the
+    view layer, so they see the view direction: `beta = softplus(Dense(3))` and
+    `ray_depth = ||Dense(3)||`.
+
+    **Fields (static):**
+
+    - `min_deg`, `max_deg`: IPE frequencies `2^min_deg .. 2^(max_deg-1)`.
+    - `viewdir_max_deg`: view-direction frequencies `2^0 .. 2^(viewdir_max_deg-1)`.
+    - `skip_layer`: the trunk layer after which the input is concatenated again.
+    - `density_noise`: std of the noise added to the raw density in training.
+    - `density_bias`: shift of the raw density before the softplus (mip-NeRF: -1).
+    - `rgb_padding`: colour range padding, `sigmoid * (1 + 2 p) - p`.
+    """
+
+    trunk: tuple[eqx.nn.Linear, ...]
+    density_head: eqx.nn.Linear
+    bottleneck: eqx.nn.Linear
+    view_layer: eqx.nn.Linear
+    rgb_head: eqx.nn.Linear
+    beta_head: eqx.nn.Linear | None
+    depth_head: eqx.nn.Linear | None
+    min_deg: int = eqx.field(static=True)
+    max_deg: int = eqx.field(static=True)
+    viewdir_max_deg: int = eqx.field(static=True)
+    skip_layer: int = eqx.field(static=True)
+    density_noise: float = eqx.field(static=True)
+    density_bias: float = eqx.field(static=True)
+    rgb_padding: float = eqx.field(static=True)
+
+    def __init__(
+        self,
+        *,
+        width: int = 256,
+        depth: int = 8,
+        view_width: int = 128,
+        skip_layer: int = 4,
+        min_deg: int = 0,
+        max_deg: int = 16,
+        viewdir_max_deg: int = 4,
+        density_noise: float = 1.0,
+        density_bias: float = -1.0,
+        rgb_padding: float = 0.001,
+        mixture_heads: bool = True,
+        key: PRNGKey,
+    ):
+        if depth < 1 or width < 1 or view_width < 1:
+            raise ValueError("depth, width and view_width must be positive")
+        if not 0 <= min_deg < max_deg:
+            raise ValueError(f"need 0 <= min_deg < max_deg, got {min_deg}, {max_deg}")
+        input_size = 2 * 3 * (max_deg - min_deg)
+        view_size = 3 + 2 * 3 * viewdir_max_deg
+        keys = iter(jax.random.split(key, depth + 6))
+        trunk = []
+        in_size = input_size
+        for layer_index in range(depth):
+            trunk.append(_dense(in_size, width, key=next(keys)))
+            in_size = width + input_size if self._skips_after(layer_index, skip_layer) else width
+        self.trunk = tuple(trunk)
+        self.density_head = _dense(in_size, 1, key=next(keys))
+        self.bottleneck = _dense(in_size, width, key=next(keys))
+        self.view_layer = _dense(width + view_size, view_width, key=next(keys))
+        self.rgb_head = _dense(view_width, 3, key=next(keys))
+        head_keys = (next(keys), next(keys))
+        self.beta_head = _dense(view_width, 3, key=head_keys[0]) if mixture_heads else None
+        self.depth_head = _dense(view_width, 3, key=head_keys[1]) if mixture_heads else None
+        self.min_deg = min_deg
+        self.max_deg = max_deg
+        self.viewdir_max_deg = viewdir_max_deg
+        self.skip_layer = skip_layer
+        self.density_noise = density_noise
+        self.density_bias = density_bias
+        self.rgb_padding = rgb_padding
+
+    @staticmethod
+    def _skips_after(layer_index: int, skip_layer: int) -> bool:
+        return skip_layer > 0 and layer_index > 0 and layer_index % skip_layer == 0
+
+    @property
+    def has_mixture_heads(self) -> bool:
+        return self.beta_head is not None and self.depth_head is not None
+
+    def __call__(
+        self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None
+    ) -> FieldOutputs:
+        inputs = integrated_positional_encoding(mean, cov, self.min_deg, self.max_deg)
+        hidden = inputs
+        for layer_index, layer in enumerate(self.trunk):
+            hidden = jax.nn.relu(layer(hidden))
+            if self._skips_after(layer_index, self.skip_layer):
+                hidden = jnp.concatenate([hidden, inputs])
+        raw_density = self.density_head(hidden)[0] + self.density_bias
+        if key is not None and self.density_noise > 0:
+            raw_density = raw_density + self.density_noise * jax.random.normal(key, (), raw_density.dtype)
+        density = jax.nn.softplus(raw_density)
+
+        view_features = positional_encoding(viewdir, 0, self.viewdir_max_deg, append_identity=True)
+        hidden = jnp.concatenate([self.bottleneck(hidden), view_features])
+        hidden = jax.nn.relu(self.view_layer(hidden))
+        rgb = jax.nn.sigmoid(self.rgb_head(hidden)) * (1 + 2 * self.rgb_padding) - self.rgb_padding
+
+        beta = ray_depth = None
+        if self.beta_head is not None and self.depth_head is not None:
+            beta = jax.nn.softplus(self.beta_head(hidden))
+            depth_vector = self.depth_head(hidden)
+            # The norm of a 3-vector, with a gradient that stays finite at zero.
+            squared = jnp.sum(depth_vector**2)
+            safe = jnp.where(squared > 0, squared, 1.0)
+            ray_depth = jnp.where(squared > 0, jnp.sqrt(safe), 0.0)
+        return FieldOutputs(density=density, rgb=rgb, beta=beta, ray_depth=ray_depth)

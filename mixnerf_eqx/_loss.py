@@ -1,0 +1,131 @@
+"""The MixNeRF training objective (paper eq. 11)."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._custom_types import PRNGKey
+from ._model import MixNeRF, RenderOutputs
+from ._rays import RayBundle
+from ._render import blend_weights
+from ._renderer import LevelOutputs
+
+
+@dataclasses.dataclass(frozen=True)
+class LossWeights:
+    """Static loss weights: a term whose weight is zero is not computed at all.
+
+    **Fields:**
+
+    - `coarse_mse`: weight of the coarse level's MSE (mip-NeRF: 0.1).
+    - `colour_nll`: whether lambda_C can be non-zero (its value comes per step).
+    - `depth_nll`: lambda_D.
+    - `regen_nll`: lambda_hat_C.
+    - `nll_levels`: `"coarse"` (the released code) or `"both"`.
+    """
+
+    coarse_mse: float = 0.1
+    colour_nll: bool = True
+    depth_nll: float = 1e-3
+    regen_nll: float = 1e-4
+    nll_levels: str = "coarse"
+
+    @property
+    def uses_mixture(self) -> bool:
+        return self.colour_nll or self.depth_nll > 0 or self.regen_nll > 0
+
+
+class LossTerms(eqx.Module):
+    """The terms of one step's loss, averaged over rays (zero where not computed)."""
+
+    total: Float[Array, ""]
+    mse_fine: Float[Array, ""]
+    mse_coarse: Float[Array, ""]
+    nll_colour: Float[Array, ""]
+    nll_depth: Float[Array, ""]
+    nll_regen: Float[Array, ""]
+
+
+def _level_nlls(
+    model: MixNeRF,
+    level: LevelOutputs,
+    target_rgb: Float[Array, "batch channels"],
+    direction_norm: Float[Array, "batch"],
+    weights: LossWeights,
+) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
+    mixture = model.mixture
+    outputs = level.field
+    zero = jnp.zeros((), target_rgb.dtype)
+    if mixture is None or outputs.beta is None or outputs.ray_depth is None:
+        raise ValueError("the mixture losses need a model with a mixture and mixture heads")
+    nll_colour = nll_depth = nll_regen = zero
+    if weights.colour_nll:
+        nll_colour = jnp.mean(jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, target_rgb))
+    if weights.depth_nll > 0:
+        nll_depth = jnp.mean(
+            jax.vmap(mixture.depth_nll)(level.weights, outputs.ray_depth, outputs.beta, direction_norm)
+        )
+    if weights.regen_nll > 0:
+        # Eq. 8: the same densities composited with the predicted ray depth in place of ||d||.
+        regen_weights = jax.vmap(blend_weights)(outputs.density, level.t_edges, outputs.ray_depth)
+        nll_regen = jnp.mean(jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, target_rgb))
+    return nll_colour, nll_depth, nll_regen
+
+
+def loss_terms(
+    outputs: RenderOutputs,
+    model: MixNeRF,
+    rays: RayBundle,
+    target_rgb: Float[Array, "batch channels"],
+    lambda_colour: Float[Array, ""],
+    weights: LossWeights,
+) -> LossTerms:
+    """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C`.
+
+    **Arguments:**
+
+    - `outputs`: the model's render of `rays` (batch shape `(batch,)`).
+    - `model`: the model (for its mixture).
+    - `rays`: the rays; `||d||` is the ray-depth target.
+    - `target_rgb`: ground-truth colours.
+    - `lambda_colour`: lambda_C at this step.
+    - `weights`: the static weights.
+    """
+    mse_fine = jnp.mean((outputs.fine.rgb - target_rgb) ** 2)
+    mse_coarse = jnp.mean((outputs.coarse.rgb - target_rgb) ** 2)
+    total = mse_fine + weights.coarse_mse * mse_coarse
+    zero = jnp.zeros((), mse_fine.dtype)
+    nll_colour = nll_depth = nll_regen = zero
+    if weights.uses_mixture:
+        direction_norm = jnp.linalg.norm(rays.directions, axis=-1)
+        levels = [outputs.coarse] if weights.nll_levels == "coarse" else [outputs.coarse, outputs.fine]
+        for level in levels:
+            colour, depth, regen = _level_nlls(model, level, target_rgb, direction_norm, weights)
+            nll_colour, nll_depth, nll_regen = nll_colour + colour, nll_depth + depth, nll_regen + regen
+        total = total + lambda_colour * nll_colour + weights.depth_nll * nll_depth + weights.regen_nll * nll_regen
+    return LossTerms(
+        total=total,
+        mse_fine=mse_fine,
+        mse_coarse=mse_coarse,
+        nll_colour=nll_colour,
+        nll_depth=nll_depth,
+        nll_regen=nll_regen,
+    )
+
+
+def loss_fn(
+    model: MixNeRF,
+    rays: RayBundle,
+    target_rgb: Float[Array, "batch channels"],
+    lambda_colour: Float[Array, ""],
+    weights: LossWeights,
+    *,
+    key: PRNGKey,
+) -> tuple[Float[Array, ""], LossTerms]:
+    """Renders `rays` in training mode and returns `(total loss, terms)`."""
+    outputs = model(rays, key=key)
+    terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
+    return terms.total, terms

@@ -1,0 +1,2 @@
+from .base import AbstractMixture as AbstractMixture
+from .laplace import LaplaceMixture as LaplaceMixture

@@ -1,0 +1,4 @@
+from .base import AbstractSampler as AbstractSampler
+from .hierarchical import HierarchicalSampler as HierarchicalSampler
+from .hierarchical import sample_piecewise_constant as sample_piecewise_constant
+from .stratified import StratifiedSampler as StratifiedSampler

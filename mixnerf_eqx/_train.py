@@ -1,0 +1,340 @@
+"""Training: the optimiser, the jitted step, image rendering and the training loop."""
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, Float, Int
+
+from ._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
+from ._config import Config, ConfigError, build_model, config_to_dict
+from ._custom_types import PRNGKey
+from ._loss import LossTerms, loss_fn
+from ._model import MixNeRF
+from ._rays import RayBundle, camera_rays
+from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
+from .data import Dataset, Views
+
+
+def make_optimizer(config: Config) -> optax.GradientTransformation:
+    """Element-wise clip, global-norm clip, then Adam on the log-linear warm-up schedule."""
+    optim = config.optim
+    schedule = learning_rate_schedule(optim.lr_init, optim.lr_final, config.train.max_steps, optim.warmup_steps)
+    parts = []
+    if optim.grad_max_value > 0:
+        parts.append(optax.clip(optim.grad_max_value))
+    if optim.grad_max_norm > 0:
+        parts.append(optax.clip_by_global_norm(optim.grad_max_norm))
+    parts.append(optax.adam(schedule))
+    return optax.chain(*parts)
+
+
+class TrainingRays(eqx.Module):
+    """Every training pixel's ray and colour, on the device, grouped by image."""
+
+    rays: RayBundle
+    rgb: Float[Array, "num_images num_pixels 3"]
+
+
+def training_rays(dataset: Dataset) -> TrainingRays:
+    """Builds the device-resident ray table of the training views."""
+    views = dataset.train
+    rays = camera_rays(views.camtoworlds, views.focal, views.height, views.width, dataset.near, dataset.far)
+    num_pixels = views.height * views.width
+    return TrainingRays(
+        rays=rays.reshape(views.num_views, num_pixels),
+        rgb=jnp.asarray(views.images.reshape(views.num_views, num_pixels, 3), jnp.float32),
+    )
+
+
+class StepMetrics(eqx.Module):
+    """What one training step reports."""
+
+    terms: LossTerms
+    psnr: Float[Array, ""]
+    learning_rate: Float[Array, ""]
+    lambda_colour: Float[Array, ""]
+
+
+def draw_batch(
+    data: TrainingRays, batch_size: int, *, key: PRNGKey
+) -> tuple[RayBundle, Float[Array, "batch 3"]]:
+    """`batch_size` random pixels (with replacement) of one random training image."""
+    image_key, pixel_key = jax.random.split(key)
+    num_images, num_pixels = data.rgb.shape[:2]
+    image = jax.random.randint(image_key, (), 0, num_images)
+    pixels = jax.random.randint(pixel_key, (batch_size,), 0, num_pixels)
+    rays = jax.tree_util.tree_map(lambda x: x[image][pixels], data.rays)
+    return rays, data.rgb[image][pixels]
+
+
+def make_train_step(
+    config: Config, optimizer: optax.GradientTransformation, *, max_traces: int | None = None
+) -> Callable:
+    """The jitted training step `(model, opt_state, data, step, key) -> (model, opt_state, metrics)`.
+
+    Everything static (the config, the optimiser) is closed over, so the step traces once;
+    `step` is a traced integer and `key` the run's root key, folded with the step. With
+    `max_traces`, tracing more often than that raises (a guard against recompiles).
+    """
+    weights = config.loss.weights()
+    loss_cfg, train_cfg, optim_cfg = config.loss, config.train, config.optim
+    schedule = learning_rate_schedule(optim_cfg.lr_init, optim_cfg.lr_final, train_cfg.max_steps, optim_cfg.warmup_steps)
+
+    def train_step(
+        model: MixNeRF, opt_state: Any, data: TrainingRays, step: Int[Array, ""], key: PRNGKey
+    ) -> tuple[MixNeRF, Any, StepMetrics]:
+        batch_key, render_key = jax.random.split(jax.random.fold_in(key, step))
+        rays, target = draw_batch(data, train_cfg.batch_size, key=batch_key)
+        rays = anneal_sample_space(rays, step, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid)
+        lambda_colour = linear_ramp(step, loss_cfg.lambda_colour_start, loss_cfg.lambda_colour_end, loss_cfg.lambda_colour_steps)
+        (_, terms), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
+            model, rays, target, lambda_colour, weights, key=render_key
+        )
+        updates, opt_state = optimizer.update(grads, opt_state, eqx.filter(model, eqx.is_array))
+        model = eqx.apply_updates(model, updates)
+        metrics = StepMetrics(
+            terms=terms,
+            psnr=-10.0 * jnp.log10(terms.mse_fine),
+            learning_rate=schedule(step),
+            lambda_colour=lambda_colour,
+        )
+        return model, opt_state, metrics
+
+    if max_traces is not None:
+        train_step = eqx.debug.assert_max_traces(train_step, max_traces=max_traces)
+    return eqx.filter_jit(train_step)
+
+
+@eqx.filter_jit
+def _render_chunk(model: MixNeRF, rays: RayBundle):
+    outputs = model(rays)
+    return outputs.fine.rgb, outputs.fine.depth, outputs.fine.acc
+
+
+def render_rays(model: MixNeRF, rays: RayBundle, chunk: int = 4096):
+    """Deterministically renders any number of rays in fixed-size chunks (bounded memory).
+
+    **Returns:**
+
+    `(rgb, depth, acc)` as numpy arrays with `rays.batch_shape` in front.
+    """
+    batch_shape = rays.batch_shape
+    flat = rays.reshape(-1)
+    count = flat.origins.shape[0]
+    num_chunks = math.ceil(count / chunk)
+    # Pad to whole chunks so that every call has the same shape and compiles once.
+    padded = jax.tree_util.tree_map(
+        lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], num_chunks * chunk - count, axis=0)]), flat
+    )
+    pieces = [_render_chunk(model, padded[i * chunk : (i + 1) * chunk]) for i in range(num_chunks)]
+    rgb, depth, acc = (np.concatenate([np.asarray(p[i]) for p in pieces])[:count] for i in range(3))
+    return rgb.reshape(*batch_shape, 3), depth.reshape(batch_shape), acc.reshape(batch_shape)
+
+
+def render_views(model: MixNeRF, views: Views, near: float, far: float, chunk: int = 4096):
+    """Renders every view of `views`: `(rgb, depth, acc)` per view, as numpy arrays."""
+    rays = camera_rays(views.camtoworlds, views.focal, views.height, views.width, near, far)
+    return render_rays(model, rays, chunk)
+
+
+def evaluate(model: MixNeRF, dataset: Dataset, *, chunk: int = 4096, view_ids: list[int] | None = None):
+    """Renders test views and returns `(mean metrics, per-view metrics, renders)`."""
+    from .metrics import depth_error, psnr, ssim
+
+    views = dataset.test
+    if view_ids is not None:
+        views = dataclasses.replace(
+            views,
+            images=views.images[view_ids],
+            camtoworlds=views.camtoworlds[view_ids],
+            depths=None if views.depths is None else views.depths[view_ids],
+            ids=tuple(views.ids[i] for i in view_ids),
+        )
+    rgb, depth, acc = render_views(model, views, dataset.near, dataset.far, chunk)
+    per_view = []
+    for index in range(views.num_views):
+        entry = {
+            "view": int(views.ids[index]),
+            "psnr": psnr(rgb[index], views.images[index]),
+            "ssim": ssim(rgb[index], views.images[index]),
+        }
+        if views.depths is not None:
+            entry["depth_mae"] = depth_error(depth[index], views.depths[index])
+        per_view.append(entry)
+    means = {name: float(np.mean([v[name] for v in per_view])) for name in per_view[0] if name != "view"}
+    return means, per_view, (rgb, depth, acc)
+
+
+# Train-section keys that do not change the trajectory: a run may resume with them changed.
+_COSMETIC_TRAIN_KEYS = ("eval_every", "num_eval_views", "checkpoint_every", "render_chunk", "run_dir", "typecheck")
+
+
+def _comparable(config_dict: dict[str, Any]) -> dict[str, Any]:
+    train = {k: v for k, v in config_dict["train"].items() if k not in _COSMETIC_TRAIN_KEYS}
+    return {**config_dict, "train": train, "name": None, "reproduces": None}
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What `fit` returns: the trained model, its test metrics and where the outputs are."""
+
+    model: MixNeRF
+    metrics: dict[str, Any]
+    run_dir: Path
+    history: list[dict[str, float]]
+
+
+def _scalars(metrics: StepMetrics) -> dict[str, float]:
+    terms = metrics.terms
+    return {
+        "loss": float(terms.total),
+        "mse_fine": float(terms.mse_fine),
+        "mse_coarse": float(terms.mse_coarse),
+        "nll_colour": float(terms.nll_colour),
+        "nll_depth": float(terms.nll_depth),
+        "nll_regen": float(terms.nll_regen),
+        "psnr": float(metrics.psnr),
+        "lr": float(metrics.learning_rate),
+        "lambda_colour": float(metrics.lambda_colour),
+    }
+
+
+def fit(
+    config: Config,
+    *,
+    dataset: Dataset | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    write_renders: bool = True,
+    log_every: int = 10,
+    stop_after: int | None = None,
+) -> TrainResult:
+    """Trains a model as `config` says, with checkpoints, evaluation and renders in its run dir.
+
+    **Arguments:**
+
+    - `config`: the run's configuration; `config.train.run_dir` receives every output.
+    - `dataset`: the scene (default: loaded from `config.data`).
+    - `resume`: continue from the run dir's latest checkpoint if there is one; it must have
+      been written with the same settings (cosmetic ones such as `eval_every` aside).
+      `False` refuses to start in a run dir that holds checkpoints.
+    - `progress`: show a progress bar.
+    - `write_renders`: write PNG renders of the test views at the end.
+    - `log_every`: steps between entries of the loss history (and bar updates).
+    - `stop_after`: stop (with a checkpoint) after this step, as if interrupted; for tests.
+
+    **Returns:**
+
+    A `TrainResult` with the final test metrics (also written to `metrics.json`).
+    """
+    import jaxtyping
+    from tqdm.auto import tqdm
+
+    from ._config import init_key
+    from ._images import colourise_depth, save_png
+    from .data import load_dataset
+
+    run_dir = Path(config.train.run_dir)
+    config_dict = config_to_dict(config)
+    dataset = load_dataset(config.data) if dataset is None else dataset
+    model_key, train_key = jax.random.split(init_key(config))
+    model = build_model(config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background)
+    optimizer = make_optimizer(config)
+    opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
+    start = 0
+    checkpoint = latest_checkpoint(run_dir)
+    if checkpoint is not None:
+        stored = read_checkpoint_meta(checkpoint)["config"]
+        if not resume:
+            raise ConfigError(f"{run_dir} already holds checkpoints; resume, or choose another train.run_dir")
+        if _comparable(stored) != _comparable(config_dict):
+            changed = _differences(_comparable(stored), _comparable(config_dict))
+            raise ConfigError(
+                f"{checkpoint} was written with different settings ({', '.join(changed)}); "
+                "choose another train.run_dir to start a new run"
+            )
+        model, opt_state, start, train_key = load_checkpoint(checkpoint, model=model, opt_state=opt_state, key=train_key)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
+
+    data = training_rays(dataset)
+    train_step = make_train_step(config, optimizer, max_traces=1)
+    history: list[dict[str, float]] = []
+    log_path = run_dir / "train_log.jsonl"
+    max_steps = config.train.max_steps
+    last_step = max_steps if stop_after is None else min(max_steps, stop_after)
+
+    def checkpoint_now(step: int) -> Path:
+        return save_checkpoint(run_dir, model=model, opt_state=opt_state, step=step, key=train_key, config=config_dict)
+
+    previous_disable = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", not config.train.typecheck)
+    bar = tqdm(total=max_steps, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
+    step = start
+    timer = time.perf_counter()
+    try:
+        with open(log_path, "a") as log_file:
+            for step in range(start, last_step):
+                model, opt_state, metrics = train_step(model, opt_state, data, jnp.asarray(step, jnp.int32), train_key)
+                done = step + 1
+                if done % log_every == 0 or done == last_step:
+                    scalars = {"step": done, **_scalars(metrics)}
+                    elapsed = time.perf_counter() - timer
+                    scalars["steps_per_s"] = (done - bar.n) / max(elapsed, 1e-9)
+                    timer = time.perf_counter()
+                    history.append(scalars)
+                    log_file.write(json.dumps(scalars) + "\n")
+                    bar.set_postfix(loss=f"{scalars['loss']:.4f}", psnr=f"{scalars['psnr']:.2f}", it_s=f"{scalars['steps_per_s']:.2f}")
+                    bar.update(done - bar.n)
+                if config.train.eval_every and done % config.train.eval_every == 0 and done < max_steps:
+                    ids = list(range(min(config.train.num_eval_views, dataset.test.num_views)))
+                    means, _, _ = evaluate(model, dataset, chunk=config.train.render_chunk, view_ids=ids)
+                    bar.write(f"step {done}: held-out " + ", ".join(f"{k} {v:.4f}" for k, v in means.items()))
+                    log_file.write(json.dumps({"step": done, "eval": means}) + "\n")
+                if config.train.checkpoint_every and done % config.train.checkpoint_every == 0:
+                    checkpoint_now(done)
+            step = last_step
+    except KeyboardInterrupt:
+        bar.close()
+        path = checkpoint_now(step)
+        print(f"\ninterrupted: checkpoint of step {step} written to {path}; run again to resume")
+        raise
+    finally:
+        bar.close()
+        jaxtyping.config.update("jaxtyping_disable", previous_disable)
+    if step != start or latest_checkpoint(run_dir) is None:
+        checkpoint_now(step)
+    if step < max_steps:
+        return TrainResult(model=model, metrics={"step": step}, run_dir=run_dir, history=history)
+
+    means, per_view, (rgb, depth, _) = evaluate(model, dataset, chunk=config.train.render_chunk)
+    metrics = {"step": step, "scene": dataset.name, "test": means, "per_view": per_view, "config": config_dict}
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if write_renders:
+        renders = run_dir / "renders"
+        for index, view_id in enumerate(dataset.test.ids):
+            save_png(renders / f"test_{view_id:03d}_rgb.png", rgb[index])
+            save_png(renders / f"test_{view_id:03d}_depth.png", colourise_depth(depth[index], dataset.near, dataset.far))
+            save_png(renders / f"test_{view_id:03d}_gt.png", dataset.test.images[index])
+    return TrainResult(model=model, metrics=metrics, run_dir=run_dir, history=history)
+
+
+def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    changed = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            changed += _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            changed.append(f"{prefix}{key}: {a!r} -> {b!r}")
+    return changed
