@@ -221,19 +221,31 @@ def config_from_dict(values: dict[str, Any], source: str = "<dict>", base: Confi
         raise ConfigError(f"{source}: {error}") from None
 
 
+def _load_file(path: Path, chain: tuple[Path, ...]) -> Config:
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    if path.resolve() in chain:
+        raise ConfigError(f"{path}: 'extends' forms a cycle")
+    try:
+        values = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"{path}: not valid TOML: {error}") from None
+    base = Config()
+    parent = values.pop("extends", None)
+    if parent is not None:
+        if not isinstance(parent, str):
+            raise ConfigError(f"{path}: extends must be a file name")
+        base = _load_file(path.parent / parent, (*chain, path.resolve()))
+    return config_from_dict(values, str(path), base)
+
+
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Config:
     """Loads a TOML config (defaults when `path` is None) and applies `section.key=value`
-    overrides, whose values are parsed as TOML (strings may be left unquoted)."""
-    config = Config()
-    if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config file {path} does not exist")
-        try:
-            values = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as error:
-            raise ConfigError(f"{path}: not valid TOML: {error}") from None
-        config = config_from_dict(values, str(path), config)
+    overrides, whose values are parsed as TOML (strings may be left unquoted).
+
+    A file may start from another with `extends = "other.toml"` (relative to the file).
+    """
+    config = Config() if path is None else _load_file(Path(path), ())
     for override in overrides:
         key, sep, raw = override.partition("=")
         if not sep or not key:

@@ -33,7 +33,7 @@ def linear_ramp(
     if num_steps <= 0:
         return jnp.asarray(end, jnp.float32)
     progress = jnp.clip(jnp.asarray(step, jnp.float32) / num_steps, 0.0, 1.0)
-    return start + (end - start) * progress
+    return start * (1 - progress) + end * progress
 
 
 def anneal_sample_space(

@@ -191,7 +191,7 @@ class TrainResult:
     model: MixNeRF
     metrics: dict[str, Any]
     run_dir: Path
-    history: list[dict[str, float]]
+    history: list[dict[str, Any]]
 
 
 def _scalars(metrics: StepMetrics) -> dict[str, float]:
@@ -269,7 +269,7 @@ def fit(
 
     data = training_rays(dataset)
     train_step = make_train_step(config, optimizer, max_traces=1)
-    history: list[dict[str, float]] = []
+    history: list[dict[str, Any]] = []
     log_path = run_dir / "train_log.jsonl"
     max_steps = config.train.max_steps
     last_step = max_steps if stop_after is None else min(max_steps, stop_after)
@@ -280,7 +280,7 @@ def fit(
     previous_disable = jaxtyping.config.jaxtyping_disable
     jaxtyping.config.update("jaxtyping_disable", not config.train.typecheck)
     bar = tqdm(total=max_steps, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
-    step = start
+    step = logged_step = start
     timer = time.perf_counter()
     try:
         with open(log_path, "a") as log_file:
@@ -290,8 +290,8 @@ def fit(
                 if done % log_every == 0 or done == last_step:
                     scalars = {"step": done, **_scalars(metrics)}
                     elapsed = time.perf_counter() - timer
-                    scalars["steps_per_s"] = (done - bar.n) / max(elapsed, 1e-9)
-                    timer = time.perf_counter()
+                    scalars["steps_per_s"] = (done - logged_step) / max(elapsed, 1e-9)
+                    timer, logged_step = time.perf_counter(), done
                     history.append(scalars)
                     log_file.write(json.dumps(scalars) + "\n")
                     bar.set_postfix(loss=f"{scalars['loss']:.4f}", psnr=f"{scalars['psnr']:.2f}", it_s=f"{scalars['steps_per_s']:.2f}")

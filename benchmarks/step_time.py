@@ -1,0 +1,84 @@
+"""Seconds per training step, MixNeRF against its mip-NeRF baseline, type checks on and off.
+
+    python benchmarks/step_time.py                       # the paper's batch: 4096 rays, 128+128 samples, 8x256 MLP
+    python benchmarks/step_time.py --config configs/builtin.toml --repeats 20
+
+Every variant is compiled first (compile time reported separately), then timed over
+`--repeats` steps; all variants run in one process, one after another, so their ratios are
+comparable. Runtime shape checks act while JAX traces: with them on, only tracing gets slower
+and the compiled step should take the same time as with them off.
+"""
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxtyping
+
+from mixnerf_eqx import build_model, load_config
+from mixnerf_eqx._train import make_optimizer, make_train_step, training_rays
+from mixnerf_eqx.data import load_dataset
+
+BASELINE = ["loss.lambda_colour_start=0.0", "loss.lambda_colour_end=0.0", "loss.lambda_depth=0.0", "loss.lambda_regen=0.0"]
+
+
+def time_variant(config, data, repeats: int, typecheck: bool) -> dict:
+    jaxtyping.config.update("jaxtyping_disable", not typecheck)
+    try:
+        model = build_model(config, key=jax.random.key(0))
+        optimizer = make_optimizer(config)
+        opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
+        step_fn = make_train_step(config, optimizer)
+        key = jax.random.key(1)
+        start = time.perf_counter()
+        model, opt_state, metrics = step_fn(model, opt_state, data, jnp.asarray(0, jnp.int32), key)
+        jax.block_until_ready(metrics)
+        compile_seconds = time.perf_counter() - start
+        start = time.perf_counter()
+        for step in range(1, repeats + 1):
+            model, opt_state, metrics = step_fn(model, opt_state, data, jnp.asarray(step, jnp.int32), key)
+        jax.block_until_ready(metrics)
+        seconds = (time.perf_counter() - start) / repeats
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", False)
+    rays = config.train.batch_size
+    samples = rays * (config.model.num_coarse_samples + config.model.num_fine_samples)
+    return {"first_step_s": compile_seconds, "step_s": seconds, "rays_per_s": rays / seconds, "samples_per_s": samples / seconds}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--config", default=None, help="TOML config (default: the paper's settings)")
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--variants", nargs="+", default=["mixnerf", "mipnerf", "mixnerf-nocheck"])
+    parser.add_argument("--out", default=None)
+    parser.add_argument("overrides", nargs="*")
+    args = parser.parse_args()
+    config = load_config(args.config, args.overrides)
+    dataset = load_dataset(config.data)
+    data = training_rays(dataset)
+    rows = []
+    for variant in args.variants:
+        extra = BASELINE if variant.startswith("mipnerf") else []
+        variant_config = load_config(args.config, [*args.overrides, *extra])
+        row = {"variant": variant, **time_variant(variant_config, data, args.repeats, typecheck=not variant.endswith("nocheck"))}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    machine = {"platform": platform.platform(), "jax": jax.__version__, "devices": [str(d) for d in jax.devices()]}
+    m = config.model
+    print(f"\nbatch {config.train.batch_size} rays, {m.num_coarse_samples}+{m.num_fine_samples} samples, MLP {m.depth}x{m.width}; {machine['devices']}")
+    print(f"{'variant':18s} {'first step s':>12s} {'step s':>9s} {'rays/s':>10s} {'samples/s':>12s}")
+    for row in rows:
+        print(f"{row['variant']:18s} {row['first_step_s']:12.2f} {row['step_s']:9.3f} {row['rays_per_s']:10.0f} {row['samples_per_s']:12.0f}")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps({"config": args.config, "overrides": args.overrides, "machine": machine, "rows": rows}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

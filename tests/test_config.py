@@ -1,0 +1,110 @@
+import dataclasses
+from pathlib import Path
+
+import jax
+import pytest
+
+import mixnerf_eqx as mx
+from mixnerf_eqx import ConfigError, build_model, load_config
+
+CONFIGS = sorted(Path("configs").glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
+def test_every_shipped_config_loads(path):
+    config = load_config(path)
+    assert config.name
+    assert config.reproduces, f"{path} must say which table cell it reproduces (or 'none')"
+
+
+def test_unknown_key_names_key_and_file(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("[model]\nwidht = 3\n")
+    with pytest.raises(ConfigError, match=r"bad\.toml.*'widht'"):
+        load_config(path)
+
+
+def test_unknown_section_names_key_and_file(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("[modle]\nwidth = 3\n")
+    with pytest.raises(ConfigError, match=r"bad\.toml.*'modle'"):
+        load_config(path)
+
+
+def test_wrong_type_is_an_error(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text('[train]\nmax_steps = "many"\n')
+    with pytest.raises(ConfigError, match="max_steps"):
+        load_config(path)
+
+
+def test_bad_literal_and_bad_value(tmp_path):
+    with pytest.raises(ConfigError, match="depth_scale"):
+        load_config(None, ["loss.depth_scale=both"])
+    with pytest.raises(ConfigError, match="train.batch_size must be positive"):
+        load_config(None, ["train.batch_size=0"])
+
+
+def test_overrides_parse_toml_values():
+    config = load_config(None, ["train.max_steps=12", "loss.lambda_depth=0.5", "model.lindisp=true", "train.run_dir=somewhere"])
+    assert config.train.max_steps == 12
+    assert config.loss.lambda_depth == 0.5
+    assert config.model.lindisp is True
+    assert config.train.run_dir == "somewhere"
+    with pytest.raises(ConfigError, match="section.key=value"):
+        load_config(None, ["no_equals_sign"])
+
+
+def test_config_is_frozen():
+    config = load_config(None)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.train.max_steps = 3  # type: ignore[misc]
+
+
+def test_baseline_has_no_mixture_parts():
+    baseline = load_config(None, ["loss.lambda_colour_start=0", "loss.lambda_colour_end=0", "loss.lambda_depth=0", "loss.lambda_regen=0"])
+    assert baseline.loss.is_baseline
+    model = build_model(baseline, key=jax.random.key(0))
+    assert model.mixture is None
+    assert not model.field.has_mixture_heads
+    mixnerf = build_model(load_config(None), key=jax.random.key(0))
+    assert isinstance(mixnerf.mixture, mx.LaplaceMixture)
+    assert mixnerf.field.has_mixture_heads
+
+
+def test_paper_architecture_sizes():
+    model = build_model(load_config(None), key=jax.random.key(0))
+    field = model.field
+    assert len(field.trunk) == 8
+    assert field.trunk[0].in_features == 96  # 2 * 3 * 16 IPE frequencies
+    assert field.trunk[5].in_features == 256 + 96  # input concatenated after layer 4
+    assert field.view_layer.in_features == 256 + 27  # bottleneck + encoded view direction
+    assert field.beta_head.in_features == 128 and field.depth_head.in_features == 128
+    assert model.coarse_sampler.num_samples == 128 and model.fine_sampler.num_samples == 128
+
+
+def test_extends_inherits_and_overrides(tmp_path):
+    (tmp_path / "base.toml").write_text('name = "base"\nreproduces = "x"\n[model]\nwidth = 48\ndepth = 3\n')
+    (tmp_path / "child.toml").write_text('extends = "base.toml"\nname = "child"\n[model]\ndepth = 5\n')
+    config = load_config(tmp_path / "child.toml")
+    assert (config.name, config.model.width, config.model.depth) == ("child", 48, 5)
+    (tmp_path / "loop.toml").write_text('extends = "loop.toml"\n')
+    with pytest.raises(ConfigError, match="cycle"):
+        load_config(tmp_path / "loop.toml")
+
+
+def test_baseline_config_is_builtin_without_nlls():
+    mixnerf = load_config("configs/builtin.toml")
+    baseline = load_config("configs/builtin_mipnerf.toml")
+    assert baseline.loss.is_baseline and not mixnerf.loss.is_baseline
+    assert baseline.model == mixnerf.model and baseline.data == mixnerf.data and baseline.optim == mixnerf.optim
+
+
+def test_notebooks_are_valid_python():
+    import json
+
+    for path in Path("notebooks").glob("*.ipynb"):
+        notebook = json.loads(path.read_text())
+        for index, cell in enumerate(notebook["cells"]):
+            if cell["cell_type"] == "code":
+                compile("".join(cell["source"]), f"{path}:cell{index}", "exec")

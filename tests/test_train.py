@@ -1,0 +1,147 @@
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mixnerf_eqx as mx
+from mixnerf_eqx import ConfigError, load_config
+from mixnerf_eqx._checkpoint import latest_checkpoint, read_checkpoint_meta
+from mixnerf_eqx._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
+from mixnerf_eqx._train import fit, make_optimizer, make_train_step, training_rays
+from mixnerf_eqx.metrics import psnr
+
+
+def _with_train(config, **changes):
+    return dataclasses.replace(config, train=dataclasses.replace(config.train, **changes))
+
+
+def test_learning_rate_schedule_matches_closed_form():
+    schedule = learning_rate_schedule(1e-3, 1e-5, 1000, 512)
+    for step in (0, 100, 512, 700, 1000, 2000):
+        progress = min(step / 1000, 1.0)
+        warmup = 0.01 + 0.99 * np.sin(0.5 * np.pi * min(step / 512, 1.0))
+        expected = warmup * np.exp(np.log(1e-3) * (1 - progress) + np.log(1e-5) * progress)
+        np.testing.assert_allclose(float(schedule(step)), expected, rtol=1e-5)
+
+
+def test_lambda_colour_ramp():
+    assert float(linear_ramp(0, 4.0, 1e-3, 512)) == pytest.approx(4.0)
+    assert float(linear_ramp(256, 4.0, 1e-3, 512)) == pytest.approx((4.0 + 1e-3) / 2, rel=1e-6)
+    assert float(linear_ramp(512, 4.0, 1e-3, 512)) == pytest.approx(1e-3)
+    assert float(linear_ramp(10_000, 4.0, 1e-3, 512)) == pytest.approx(1e-3)
+
+
+def test_sample_space_annealing_matches_regnerf_formula():
+    rays = mx.RayBundle(
+        origins=jnp.zeros((1, 3)), directions=jnp.ones((1, 3)), viewdirs=jnp.ones((1, 3)) / np.sqrt(3),
+        radii=jnp.ones((1, 1)), near=jnp.full((1, 1), 2.0), far=jnp.full((1, 1), 6.0),
+    )
+    n, f, p, m, big_n = 2.0, 6.0, 0.5, 0.5, 256
+    mid = n + m * (f - n)
+    n0, f0 = mid + p * (n - mid), mid + p * (f - mid)
+    for step in (0, 64, 128, 200, 256, 1000):
+        w = min(max(step / big_n, p), 1.0)
+        annealed = anneal_sample_space(rays, step, big_n, p, m)
+        assert float(annealed.near[0, 0]) == pytest.approx(n0 + w * (n - n0))
+        assert float(annealed.far[0, 0]) == pytest.approx(f0 + w * (f - f0))
+    assert anneal_sample_space(rays, 0, 0, p, m) is rays
+
+
+def test_train_step_traces_once(tiny_config, tiny_scene):
+    config = tiny_config
+    model = mx.build_model(config, key=jax.random.key(0))
+    optimizer = make_optimizer(config)
+    opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
+    step_fn = make_train_step(config, optimizer, max_traces=1)
+    data = training_rays(tiny_scene)
+    key = jax.random.key(1)
+    for step in range(4):
+        model, opt_state, metrics = step_fn(model, opt_state, data, jnp.asarray(step, jnp.int32), key)
+    assert np.isfinite(float(metrics.terms.total))
+    # The guard is live: a call that needs a new trace (other data shapes) is refused.
+    smaller = jax.tree_util.tree_map(lambda x: x[:, :100], data)
+    with pytest.raises(RuntimeError, match="traced"):
+        step_fn(model, opt_state, smaller, jnp.asarray(5, jnp.int32), key)
+
+
+def _count_equations(config, tiny_scene):
+    model = mx.build_model(config, key=jax.random.key(0))
+    data = training_rays(tiny_scene)
+    rays, target = data.rays[0, :64], data.rgb[0, :64]
+    weights = config.loss.weights()
+
+    def loss(model):
+        return mx.loss_fn(model, rays, target, jnp.float32(1.0), weights, key=jax.random.key(0))[0]
+
+    return len(jax.make_jaxpr(eqx.filter_grad(loss))(model).jaxpr.eqns)
+
+
+def test_zero_weight_terms_are_not_computed(tiny_config, tiny_scene):
+    full = _count_equations(tiny_config, tiny_scene)
+    no_depth = _count_equations(dataclasses.replace(tiny_config, loss=dataclasses.replace(tiny_config.loss, lambda_depth=0.0)), tiny_scene)
+    no_regen = _count_equations(dataclasses.replace(tiny_config, loss=dataclasses.replace(tiny_config.loss, lambda_regen=0.0)), tiny_scene)
+    baseline_loss = dataclasses.replace(tiny_config.loss, lambda_colour_start=0.0, lambda_colour_end=0.0, lambda_depth=0.0, lambda_regen=0.0)
+    baseline = _count_equations(dataclasses.replace(tiny_config, loss=baseline_loss), tiny_scene)
+    assert baseline < no_depth < full
+    assert baseline < no_regen < full
+
+
+@pytest.mark.slow
+def test_short_run_learns_the_builtin_scene(tiny_config, tiny_scene):
+    result = fit(tiny_config, dataset=tiny_scene, progress=False, write_renders=True, log_every=10)
+    losses = [entry["mse_fine"] for entry in result.history]
+    assert np.mean(losses[-3:]) < 0.5 * np.mean(losses[:2])
+    # The best constant colour for the held-out views is their own mean colour.
+    test_images = tiny_scene.test.images
+    constant = np.mean([psnr(np.broadcast_to(img.mean(axis=(0, 1)), img.shape), img) for img in test_images])
+    assert result.metrics["test"]["psnr"] > constant + 3.0, (result.metrics["test"], constant)
+    assert (result.run_dir / "metrics.json").is_file()
+    assert len(list((result.run_dir / "renders").glob("*_rgb.png"))) == tiny_scene.test.num_views
+    assert np.isfinite(result.metrics["test"]["depth_mae"])
+
+
+@pytest.mark.slow
+def test_resume_is_bit_identical(tiny_config, tiny_scene, tmp_path):
+    config = _with_train(tiny_config, max_steps=24, checkpoint_every=8)
+    straight = fit(_with_train(config, run_dir=str(tmp_path / "a")), dataset=tiny_scene, progress=False, write_renders=False)
+    interrupted_config = _with_train(config, run_dir=str(tmp_path / "b"))
+    partial = fit(interrupted_config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=13)
+    assert partial.metrics == {"step": 13}
+    assert read_checkpoint_meta(latest_checkpoint(tmp_path / "b"))["step"] == 13
+    resumed = fit(interrupted_config, dataset=tiny_scene, progress=False, write_renders=False)
+    leaves_a = jax.tree_util.tree_leaves(eqx.filter(straight.model, eqx.is_array))
+    leaves_b = jax.tree_util.tree_leaves(eqx.filter(resumed.model, eqx.is_array))
+    assert len(leaves_a) == len(leaves_b)
+    for a, b in zip(leaves_a, leaves_b):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert straight.metrics["test"] == resumed.metrics["test"]
+
+
+def test_resume_refuses_changed_settings(tiny_config, tiny_scene):
+    config = _with_train(tiny_config, max_steps=2)
+    fit(config, dataset=tiny_scene, progress=False, write_renders=False)
+    changed = dataclasses.replace(config, loss=dataclasses.replace(config.loss, lambda_depth=0.5))
+    with pytest.raises(ConfigError, match="lambda_depth"):
+        fit(changed, dataset=tiny_scene, progress=False, write_renders=False)
+    with pytest.raises(ConfigError, match="already holds checkpoints"):
+        fit(config, dataset=tiny_scene, progress=False, write_renders=False, resume=False)
+
+
+def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, monkeypatch):
+    config = _with_train(tiny_config, max_steps=2)
+    fit(config, dataset=tiny_scene, progress=False, write_renders=False)
+    before = latest_checkpoint(config.train.run_dir)
+
+    def crash(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(eqx, "tree_serialise_leaves", crash)
+    from mixnerf_eqx._checkpoint import save_checkpoint
+
+    model = mx.build_model(config, key=jax.random.key(0))
+    with pytest.raises(OSError):
+        save_checkpoint(config.train.run_dir, model=model, opt_state=(), step=99, key=jax.random.key(0), config={})
+    assert latest_checkpoint(config.train.run_dir) == before
