@@ -17,7 +17,12 @@ import jax
 from mixnerf_eqx import load_config
 from mixnerf_eqx._train import fit
 
-BASELINE = ["loss.lambda_colour_start=0.0", "loss.lambda_colour_end=0.0", "loss.lambda_depth=0.0", "loss.lambda_regen=0.0"]
+BASELINE = [
+    "loss.lambda_colour_start=0.0",
+    "loss.lambda_colour_end=0.0",
+    "loss.lambda_depth=0.0",
+    "loss.lambda_regen=0.0",
+]
 
 
 def main() -> None:
@@ -25,23 +30,62 @@ def main() -> None:
     parser.add_argument("--config", default="configs/builtin.toml")
     parser.add_argument("--out", default="benchmarks/results/builtin_compare_cpu.json")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument(
+        "--runs-root", default="runs/compare", help="run dirs go here (existing ones are resumed)"
+    )
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     rows = []
     for seed in args.seeds:
         for name, extra in (("mixnerf", []), ("mipnerf", BASELINE)):
-            run_dir = f"runs/compare/{name}_seed{seed}"
-            config = load_config(args.config, [*args.overrides, *extra, f"train.seed={seed}", f'train.run_dir="{run_dir}"', "train.eval_every=0"])
+            run_dir = f"{args.runs_root}/{name}_seed{seed}"
+            config = load_config(
+                args.config,
+                [
+                    *args.overrides,
+                    *extra,
+                    f"train.seed={seed}",
+                    f'train.run_dir="{run_dir}"',
+                    "train.eval_every=0",
+                ],
+            )
             start = time.perf_counter()
             result = fit(config, resume=True, progress=False, write_renders=True)
-            rows.append({"model": name, "seed": seed, "seconds": time.perf_counter() - start, "steps": result.metrics["step"], **result.metrics["test"]})
+            rows.append(
+                {
+                    "model": name,
+                    "seed": seed,
+                    "seconds": time.perf_counter() - start,
+                    "steps": result.metrics["step"],
+                    **result.metrics["test"],
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
-    print(f"\n{'model':8s} {'seed':>4s} {'steps':>6s} {'PSNR':>7s} {'SSIM':>6s} {'depth MAE':>9s} {'seconds':>8s}")
+    header = ("model", "seed", "steps", "PSNR", "SSIM", "depth MAE", "seconds")
+    print("\n" + " ".join(f"{h:>9s}" for h in header))
     for row in rows:
-        print(f"{row['model']:8s} {row['seed']:4d} {row['steps']:6d} {row['psnr']:7.2f} {row['ssim']:6.3f} {row['depth_mae']:9.4f} {row['seconds']:8.1f}")
-    machine = {"platform": platform.platform(), "processor": platform.processor(), "jax": jax.__version__, "devices": [str(d) for d in jax.devices()]}
+        cells = (
+            row["model"],
+            row["seed"],
+            row["steps"],
+            row["psnr"],
+            row["ssim"],
+            row["depth_mae"],
+            row["seconds"],
+        )
+        print(" ".join(f"{c:>9.4g}" if isinstance(c, float) else f"{c!s:>9s}" for c in cells))
+    machine = {
+        "platform": platform.platform(),
+        "processor": platform.processor(),
+        "jax": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+    }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"config": args.config, "overrides": args.overrides, "machine": machine, "rows": rows}, indent=2))
+    Path(args.out).write_text(
+        json.dumps(
+            {"config": args.config, "overrides": args.overrides, "machine": machine, "rows": rows}, indent=2
+        )
+    )
     print(f"written to {args.out}")
 
 

@@ -1,6 +1,6 @@
 """Seconds per training step, MixNeRF against its mip-NeRF baseline, type checks on and off.
 
-    python benchmarks/step_time.py                       # the paper's batch: 4096 rays, 128+128 samples, 8x256 MLP
+    python benchmarks/step_time.py      # the paper's batch: 4096 rays, 128+128 samples, 8x256 MLP
     python benchmarks/step_time.py --config configs/builtin.toml --repeats 20
 
 Every variant is compiled first (compile time reported separately), then timed over
@@ -24,7 +24,12 @@ from mixnerf_eqx import build_model, load_config
 from mixnerf_eqx._train import make_optimizer, make_train_step, training_rays
 from mixnerf_eqx.data import load_dataset
 
-BASELINE = ["loss.lambda_colour_start=0.0", "loss.lambda_colour_end=0.0", "loss.lambda_depth=0.0", "loss.lambda_regen=0.0"]
+BASELINE = [
+    "loss.lambda_colour_start=0.0",
+    "loss.lambda_colour_end=0.0",
+    "loss.lambda_depth=0.0",
+    "loss.lambda_regen=0.0",
+]
 
 
 def time_variant(config, data, repeats: int, typecheck: bool) -> dict:
@@ -48,7 +53,12 @@ def time_variant(config, data, repeats: int, typecheck: bool) -> dict:
         jaxtyping.config.update("jaxtyping_disable", False)
     rays = config.train.batch_size
     samples = rays * (config.model.num_coarse_samples + config.model.num_fine_samples)
-    return {"first_step_s": compile_seconds, "step_s": seconds, "rays_per_s": rays / seconds, "samples_per_s": samples / seconds}
+    return {
+        "first_step_s": compile_seconds,
+        "step_s": seconds,
+        "rays_per_s": rays / seconds,
+        "samples_per_s": samples / seconds,
+    }
 
 
 def main() -> None:
@@ -66,18 +76,33 @@ def main() -> None:
     for variant in args.variants:
         extra = BASELINE if variant.startswith("mipnerf") else []
         variant_config = load_config(args.config, [*args.overrides, *extra])
-        row = {"variant": variant, **time_variant(variant_config, data, args.repeats, typecheck=not variant.endswith("nocheck"))}
+        row = {
+            "variant": variant,
+            **time_variant(variant_config, data, args.repeats, typecheck=not variant.endswith("nocheck")),
+        }
         rows.append(row)
         print(json.dumps(row), flush=True)
-    machine = {"platform": platform.platform(), "jax": jax.__version__, "devices": [str(d) for d in jax.devices()]}
+    machine = {
+        "platform": platform.platform(),
+        "jax": jax.__version__,
+        "devices": [str(d) for d in jax.devices()],
+    }
     m = config.model
-    print(f"\nbatch {config.train.batch_size} rays, {m.num_coarse_samples}+{m.num_fine_samples} samples, MLP {m.depth}x{m.width}; {machine['devices']}")
-    print(f"{'variant':18s} {'first step s':>12s} {'step s':>9s} {'rays/s':>10s} {'samples/s':>12s}")
+    print(f"\nbatch {config.train.batch_size} rays, {m.num_coarse_samples}+{m.num_fine_samples} samples,")
+    print(f"MLP {m.depth}x{m.width}, remat {m.remat}; {machine['devices']}")
+    header = ("variant", "first step s", "step s", "rays/s", "samples/s")
+    print(" ".join(f"{h:>16s}" for h in header))
     for row in rows:
-        print(f"{row['variant']:18s} {row['first_step_s']:12.2f} {row['step_s']:9.3f} {row['rays_per_s']:10.0f} {row['samples_per_s']:12.0f}")
+        cells = (row["variant"], row["first_step_s"], row["step_s"], row["rays_per_s"], row["samples_per_s"])
+        print(" ".join(f"{c:>16.4g}" if isinstance(c, float) else f"{c:>16s}" for c in cells))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"config": args.config, "overrides": args.overrides, "machine": machine, "rows": rows}, indent=2))
+        Path(args.out).write_text(
+            json.dumps(
+                {"config": args.config, "overrides": args.overrides, "machine": machine, "rows": rows},
+                indent=2,
+            )
+        )
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ with (
     from ._rays import camera_rays as camera_rays
     from ._render import blend_weights as blend_weights
     from ._render import composite_rgb as composite_rgb
+    from ._render import depth_quantile as depth_quantile
     from ._render import expected_depth as expected_depth
     from ._renderer import AbstractRenderer as AbstractRenderer
     from ._renderer import LevelOutputs as LevelOutputs

@@ -54,8 +54,12 @@ def save_checkpoint(
     if staging.exists():
         shutil.rmtree(staging)
     staging.mkdir()
-    state = (model, opt_state, jnp.asarray(step, jnp.int64 if jax.config.jax_enable_x64 else jnp.int32),
-             jax.random.key_data(key))
+    state = (
+        model,
+        opt_state,
+        jnp.asarray(step, jnp.int64 if jax.config.jax_enable_x64 else jnp.int32),
+        jax.random.key_data(key),
+    )
     eqx.tree_serialise_leaves(staging / "state.eqx", state)
     meta = {"step": int(step), "config": config}
     (staging / "meta.json").write_text(json.dumps(meta, indent=2))
@@ -77,8 +81,12 @@ def read_checkpoint_meta(path: str | Path) -> dict[str, Any]:
 
 def load_checkpoint(path: str | Path, *, model: eqx.Module, opt_state: Any, key: jax.Array):
     """Restores `(model, opt_state, step, key)` from `path` into the given skeletons."""
-    like = (model, opt_state, jnp.asarray(0, jnp.int64 if jax.config.jax_enable_x64 else jnp.int32),
-            jax.random.key_data(key))
+    like = (
+        model,
+        opt_state,
+        jnp.asarray(0, jnp.int64 if jax.config.jax_enable_x64 else jnp.int32),
+        jax.random.key_data(key),
+    )
     model, opt_state, step, key_data = eqx.tree_deserialise_leaves(Path(path) / "state.eqx", like)
     key = jax.random.wrap_key_data(np.asarray(key_data), impl=jax.random.key_impl(key))
     return model, opt_state, int(step), key

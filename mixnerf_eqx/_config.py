@@ -1,10 +1,10 @@
 """Typed, frozen configuration loaded from `configs/*.toml`, and `build_model`."""
 
 import dataclasses
-from collections.abc import Sequence
 import tomllib
 import types
 import typing
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -48,6 +48,7 @@ class ModelConfig:
     resample_padding: float = 0.01  # added to the blurred coarse weights before resampling
     lindisp: bool = False  # space coarse samples linearly in disparity
     frustum: Literal["auto", "cone", "cylinder"] = "auto"  # "auto": what the dataset says
+    remat: bool = False  # recompute MLP activations in the backward pass (less memory, ~1/3 more compute)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,7 +150,13 @@ def validate(config: Config) -> None:
         raise ConfigError("; ".join(problems))
 
 
-_SECTIONS = {"data": DataConfig, "model": ModelConfig, "loss": LossConfig, "optim": OptimConfig, "train": TrainConfig}
+_SECTIONS = {
+    "data": DataConfig,
+    "model": ModelConfig,
+    "loss": LossConfig,
+    "optim": OptimConfig,
+    "train": TrainConfig,
+}
 
 
 def _coerce(value: Any, annotation: Any, where: str) -> Any:
@@ -316,6 +323,7 @@ def build_model(
         fine_sampler=HierarchicalSampler(model_cfg.num_fine_samples, shape, model_cfg.resample_padding),
         renderer=VolumeRenderer((1.0, 1.0, 1.0) if white_background else None),
         mixture=mixture,
+        remat=model_cfg.remat,
     )
 
 

@@ -23,7 +23,13 @@ def colourise_depth(
     normalised = np.clip((np.where(finite, depth, far) - near) / max(far - near, 1e-12), 0.0, 1.0)
     # A short piecewise-linear ramp through the viridis anchor colours.
     anchors = np.array(
-        [[0.993, 0.906, 0.144], [0.369, 0.788, 0.384], [0.128, 0.567, 0.551], [0.231, 0.322, 0.545], [0.267, 0.005, 0.329]]
+        [
+            [0.993, 0.906, 0.144],
+            [0.369, 0.788, 0.384],
+            [0.128, 0.567, 0.551],
+            [0.231, 0.322, 0.545],
+            [0.267, 0.005, 0.329],
+        ]
     )
     position = normalised * (len(anchors) - 1)
     lower = np.floor(position).astype(int).clip(0, len(anchors) - 2)

@@ -63,7 +63,9 @@ def _level_nlls(
         raise ValueError("the mixture losses need a model with a mixture and mixture heads")
     nll_colour = nll_depth = nll_regen = zero
     if weights.colour_nll:
-        nll_colour = jnp.mean(jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, target_rgb))
+        nll_colour = jnp.mean(
+            jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, target_rgb)
+        )
     if weights.depth_nll > 0:
         nll_depth = jnp.mean(
             jax.vmap(mixture.depth_nll)(level.weights, outputs.ray_depth, outputs.beta, direction_norm)
@@ -71,7 +73,9 @@ def _level_nlls(
     if weights.regen_nll > 0:
         # Eq. 8: the same densities composited with the predicted ray depth in place of ||d||.
         regen_weights = jax.vmap(blend_weights)(outputs.density, level.t_edges, outputs.ray_depth)
-        nll_regen = jnp.mean(jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, target_rgb))
+        nll_regen = jnp.mean(
+            jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, target_rgb)
+        )
     return nll_colour, nll_depth, nll_regen
 
 
@@ -105,7 +109,9 @@ def loss_terms(
         for level in levels:
             colour, depth, regen = _level_nlls(model, level, target_rgb, direction_norm, weights)
             nll_colour, nll_depth, nll_regen = nll_colour + colour, nll_depth + depth, nll_regen + regen
-        total = total + lambda_colour * nll_colour + weights.depth_nll * nll_depth + weights.regen_nll * nll_regen
+        total = (
+            total + lambda_colour * nll_colour + weights.depth_nll * nll_depth + weights.regen_nll * nll_regen
+        )
     return LossTerms(
         total=total,
         mse_fine=mse_fine,

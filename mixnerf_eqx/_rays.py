@@ -82,9 +82,7 @@ def pixel_directions(
     cx = width / 2 if cx is None else cx
     cy = height / 2 if cy is None else cy
     cols, rows = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    return np.stack(
-        [(cols + 0.5 - cx) / focal, -(rows + 0.5 - cy) / focal, -np.ones_like(cols)], axis=-1
-    )
+    return np.stack([(cols + 0.5 - cx) / focal, -(rows + 0.5 - cy) / focal, -np.ones_like(cols)], axis=-1)
 
 
 def camera_rays(
@@ -111,9 +109,7 @@ def camera_rays(
     camera_dirs = pixel_directions(focal, height, width)
     rotations = np.asarray(camtoworlds, np.float64)[:, :3, :3]
     directions = np.einsum("nij,hwj->nhwi", rotations, camera_dirs)
-    origins = np.broadcast_to(
-        np.asarray(camtoworlds, np.float64)[:, None, None, :3, 3], directions.shape
-    )
+    origins = np.broadcast_to(np.asarray(camtoworlds, np.float64)[:, None, None, :3, 3], directions.shape)
     viewdirs = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
     # mip-NeRF: the base radius is the distance between neighbouring pixels' directions
     # at t = 1, scaled by 2/sqrt(12) so that the cone's variance matches the pixel's.

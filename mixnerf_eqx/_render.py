@@ -4,14 +4,13 @@ Everything here is a function of arrays: Modules hold parameters and call these.
 """
 
 import jax.numpy as jnp
+import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._custom_types import RGB, Edges, PerSample, PerSampleRGB
 
 
-def blend_weights(
-    density: PerSample, t_edges: Edges, step_scale: Float[Array, ""] | PerSample
-) -> PerSample:
+def blend_weights(density: PerSample, t_edges: Edges, step_scale: Float[Array, ""] | PerSample) -> PerSample:
     """Alpha-compositing weights `w_i = T_i (1 - exp(-sigma_i delta_i))`.
 
     **Arguments:**
@@ -33,9 +32,7 @@ def blend_weights(
     return alpha * jnp.exp(-optical_depth)
 
 
-def composite_rgb(
-    weights: PerSample, rgb: PerSampleRGB, background: RGB | None = None
-) -> RGB:
+def composite_rgb(weights: PerSample, rgb: PerSampleRGB, background: RGB | None = None) -> RGB:
     """The expected colour `sum_i w_i c_i`, plus `(1 - sum_i w_i)` of the background."""
     colour = jnp.sum(weights[:, None] * rgb, axis=0)
     if background is not None:
@@ -59,3 +56,39 @@ def expected_depth(weights: PerSample, t_edges: Edges) -> Float[Array, ""]:
     safe_total = jnp.where(total > 0, total, 1.0)
     depth = jnp.where(total > 0, jnp.sum(weights * t_mids) / safe_total, t_edges[-1])
     return jnp.clip(depth, t_edges[0], t_edges[-1])
+
+
+def depth_quantile(
+    weights: PerSample, t_edges: Edges, quantile: float = 0.5, *, tolerance: float = 1e-6
+) -> Float[Array, ""]:
+    """The `quantile` of where the ray terminates (0.5: the median depth).
+
+    The termination distance has the piecewise-constant density that puts mass
+    `w_i / sum_m w_m` uniformly on interval `i`; its quantile is found by bisection on the
+    cumulative distribution, bracketed by the ray's first and last edge. A ray with zero
+    opacity reports its far bound.
+    """
+    if not 0.0 < quantile < 1.0:
+        raise ValueError(f"quantile must lie in (0, 1), got {quantile}")
+    total = jnp.sum(weights)
+    masses = weights / jnp.where(total > 0, total, 1.0)
+    widths = t_edges[1:] - t_edges[:-1]
+    safe_widths = jnp.where(widths > 0, widths, 1.0)
+
+    def cdf_minus_quantile(t, args):
+        del args
+        covered = jnp.where(
+            widths > 0, jnp.clip((t - t_edges[:-1]) / safe_widths, 0.0, 1.0), t >= t_edges[:-1]
+        )
+        return jnp.sum(masses * covered) - quantile
+
+    solver = optx.Bisection(rtol=tolerance, atol=tolerance, flip=False)
+    solution = optx.root_find(
+        cdf_minus_quantile,
+        solver,
+        0.5 * (t_edges[0] + t_edges[-1]),
+        options=dict(lower=t_edges[0], upper=t_edges[-1]),
+        max_steps=128,
+        throw=False,
+    )
+    return jnp.where(total > 0, solution.value, t_edges[-1])

@@ -26,9 +26,7 @@ def learning_rate_schedule(
     return schedule
 
 
-def linear_ramp(
-    step: Int[Array, ""] | int, start: float, end: float, num_steps: int
-) -> Float[Array, ""]:
+def linear_ramp(step: Int[Array, ""] | int, start: float, end: float, num_steps: int) -> Float[Array, ""]:
     """`start` at step 0, linear to `end` at `num_steps`, constant after (lambda_C)."""
     if num_steps <= 0:
         return jnp.asarray(end, jnp.float32)

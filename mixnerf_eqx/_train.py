@@ -11,24 +11,30 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jaxtyping
 import numpy as np
 import optax
 from jaxtyping import Array, Float, Int
+from tqdm.auto import tqdm
 
 from ._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
-from ._config import Config, ConfigError, build_model, config_to_dict
+from ._config import Config, ConfigError, build_model, config_to_dict, init_key
 from ._custom_types import PRNGKey
+from ._images import colourise_depth, save_png
 from ._loss import LossTerms, loss_fn
 from ._model import MixNeRF
 from ._rays import RayBundle, camera_rays
 from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
-from .data import Dataset, Views
+from .data import Dataset, Views, load_dataset
+from .metrics import depth_error, psnr, ssim
 
 
 def make_optimizer(config: Config) -> optax.GradientTransformation:
     """Element-wise clip, global-norm clip, then Adam on the log-linear warm-up schedule."""
     optim = config.optim
-    schedule = learning_rate_schedule(optim.lr_init, optim.lr_final, config.train.max_steps, optim.warmup_steps)
+    schedule = learning_rate_schedule(
+        optim.lr_init, optim.lr_final, config.train.max_steps, optim.warmup_steps
+    )
     parts = []
     if optim.grad_max_value > 0:
         parts.append(optax.clip(optim.grad_max_value))
@@ -88,15 +94,21 @@ def make_train_step(
     """
     weights = config.loss.weights()
     loss_cfg, train_cfg, optim_cfg = config.loss, config.train, config.optim
-    schedule = learning_rate_schedule(optim_cfg.lr_init, optim_cfg.lr_final, train_cfg.max_steps, optim_cfg.warmup_steps)
+    schedule = learning_rate_schedule(
+        optim_cfg.lr_init, optim_cfg.lr_final, train_cfg.max_steps, optim_cfg.warmup_steps
+    )
 
     def train_step(
         model: MixNeRF, opt_state: Any, data: TrainingRays, step: Int[Array, ""], key: PRNGKey
     ) -> tuple[MixNeRF, Any, StepMetrics]:
         batch_key, render_key = jax.random.split(jax.random.fold_in(key, step))
         rays, target = draw_batch(data, train_cfg.batch_size, key=batch_key)
-        rays = anneal_sample_space(rays, step, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid)
-        lambda_colour = linear_ramp(step, loss_cfg.lambda_colour_start, loss_cfg.lambda_colour_end, loss_cfg.lambda_colour_steps)
+        rays = anneal_sample_space(
+            rays, step, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid
+        )
+        lambda_colour = linear_ramp(
+            step, loss_cfg.lambda_colour_start, loss_cfg.lambda_colour_end, loss_cfg.lambda_colour_steps
+        )
         (_, terms), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
             model, rays, target, lambda_colour, weights, key=render_key
         )
@@ -149,8 +161,6 @@ def render_views(model: MixNeRF, views: Views, near: float, far: float, chunk: i
 
 def evaluate(model: MixNeRF, dataset: Dataset, *, chunk: int = 4096, view_ids: list[int] | None = None):
     """Renders test views and returns `(mean metrics, per-view metrics, renders)`."""
-    from .metrics import depth_error, psnr, ssim
-
     views = dataset.test
     if view_ids is not None:
         views = dataclasses.replace(
@@ -176,7 +186,14 @@ def evaluate(model: MixNeRF, dataset: Dataset, *, chunk: int = 4096, view_ids: l
 
 
 # Train-section keys that do not change the trajectory: a run may resume with them changed.
-_COSMETIC_TRAIN_KEYS = ("eval_every", "num_eval_views", "checkpoint_every", "render_chunk", "run_dir", "typecheck")
+_COSMETIC_TRAIN_KEYS = (
+    "eval_every",
+    "num_eval_views",
+    "checkpoint_every",
+    "render_chunk",
+    "run_dir",
+    "typecheck",
+)
 
 
 def _comparable(config_dict: dict[str, Any]) -> dict[str, Any]:
@@ -237,18 +254,13 @@ def fit(
 
     A `TrainResult` with the final test metrics (also written to `metrics.json`).
     """
-    import jaxtyping
-    from tqdm.auto import tqdm
-
-    from ._config import init_key
-    from ._images import colourise_depth, save_png
-    from .data import load_dataset
-
     run_dir = Path(config.train.run_dir)
     config_dict = config_to_dict(config)
     dataset = load_dataset(config.data) if dataset is None else dataset
     model_key, train_key = jax.random.split(init_key(config))
-    model = build_model(config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background)
+    model = build_model(
+        config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background
+    )
     optimizer = make_optimizer(config)
     opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
     start = 0
@@ -263,7 +275,9 @@ def fit(
                 f"{checkpoint} was written with different settings ({', '.join(changed)}); "
                 "choose another train.run_dir to start a new run"
             )
-        model, opt_state, start, train_key = load_checkpoint(checkpoint, model=model, opt_state=opt_state, key=train_key)
+        model, opt_state, start, train_key = load_checkpoint(
+            checkpoint, model=model, opt_state=opt_state, key=train_key
+        )
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
 
@@ -275,7 +289,9 @@ def fit(
     last_step = max_steps if stop_after is None else min(max_steps, stop_after)
 
     def checkpoint_now(step: int) -> Path:
-        return save_checkpoint(run_dir, model=model, opt_state=opt_state, step=step, key=train_key, config=config_dict)
+        return save_checkpoint(
+            run_dir, model=model, opt_state=opt_state, step=step, key=train_key, config=config_dict
+        )
 
     previous_disable = jaxtyping.config.jaxtyping_disable
     jaxtyping.config.update("jaxtyping_disable", not config.train.typecheck)
@@ -285,7 +301,9 @@ def fit(
     try:
         with open(log_path, "a") as log_file:
             for step in range(start, last_step):
-                model, opt_state, metrics = train_step(model, opt_state, data, jnp.asarray(step, jnp.int32), train_key)
+                model, opt_state, metrics = train_step(
+                    model, opt_state, data, jnp.asarray(step, jnp.int32), train_key
+                )
                 done = step + 1
                 if done % log_every == 0 or done == last_step:
                     scalars = {"step": done, **_scalars(metrics)}
@@ -294,7 +312,11 @@ def fit(
                     timer, logged_step = time.perf_counter(), done
                     history.append(scalars)
                     log_file.write(json.dumps(scalars) + "\n")
-                    bar.set_postfix(loss=f"{scalars['loss']:.4f}", psnr=f"{scalars['psnr']:.2f}", it_s=f"{scalars['steps_per_s']:.2f}")
+                    bar.set_postfix(
+                        loss=f"{scalars['loss']:.4f}",
+                        psnr=f"{scalars['psnr']:.2f}",
+                        it_s=f"{scalars['steps_per_s']:.2f}",
+                    )
                     bar.update(done - bar.n)
                 if config.train.eval_every and done % config.train.eval_every == 0 and done < max_steps:
                     ids = list(range(min(config.train.num_eval_views, dataset.test.num_views)))
@@ -318,13 +340,22 @@ def fit(
         return TrainResult(model=model, metrics={"step": step}, run_dir=run_dir, history=history)
 
     means, per_view, (rgb, depth, _) = evaluate(model, dataset, chunk=config.train.render_chunk)
-    metrics = {"step": step, "scene": dataset.name, "test": means, "per_view": per_view, "config": config_dict}
+    metrics = {
+        "step": step,
+        "scene": dataset.name,
+        "test": means,
+        "per_view": per_view,
+        "config": config_dict,
+    }
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     if write_renders:
         renders = run_dir / "renders"
         for index, view_id in enumerate(dataset.test.ids):
             save_png(renders / f"test_{view_id:03d}_rgb.png", rgb[index])
-            save_png(renders / f"test_{view_id:03d}_depth.png", colourise_depth(depth[index], dataset.near, dataset.far))
+            save_png(
+                renders / f"test_{view_id:03d}_depth.png",
+                colourise_depth(depth[index], dataset.near, dataset.far),
+            )
             save_png(renders / f"test_{view_id:03d}_gt.png", dataset.test.images[index])
     return TrainResult(model=model, metrics=metrics, run_dir=run_dir, history=history)
 

@@ -14,11 +14,15 @@ DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "builtin.t
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.train", description=__doc__.split("\n")[0])
-    parser.add_argument("--config", type=Path, default=None, help="TOML config (default: configs/builtin.toml)")
+    parser.add_argument(
+        "--config", type=Path, default=None, help="TOML config (default: configs/builtin.toml)"
+    )
     parser.add_argument("--run-dir", default=None, help="output folder (default: the config's train.run_dir)")
     parser.add_argument("--no-typecheck", action="store_true", help="turn off runtime shape checks")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    parser.add_argument("overrides", nargs="*", metavar="section.key=value", help="config overrides, e.g. train.max_steps=200")
+    parser.add_argument(
+        "overrides", nargs="*", metavar="section.key=value", help="config overrides, e.g. train.max_steps=200"
+    )
     return parser.parse_args(argv)
 
 
@@ -32,7 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     config_path = args.config
     if config_path is None:
         if not DEFAULT_CONFIG.is_file():
-            print(f"error: no --config given and the default {DEFAULT_CONFIG.name} was not found", file=sys.stderr)
+            print(
+                f"error: no --config given and the default {DEFAULT_CONFIG.name} was not found",
+                file=sys.stderr,
+            )
             return 2
         config_path = DEFAULT_CONFIG
     overrides = list(args.overrides)
@@ -50,8 +57,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     test = result.metrics["test"]
-    print(f"\ntest metrics after {result.metrics['step']} steps on {result.metrics['scene']} "
-          f"({len(result.metrics['per_view'])} held-out views):")
+    print(
+        f"\ntest metrics after {result.metrics['step']} steps on {result.metrics['scene']} "
+        f"({len(result.metrics['per_view'])} held-out views):"
+    )
     for name, value in test.items():
         print(f"  {name:10s} {value:.4f}")
     print(f"metrics: {result.run_dir / 'metrics.json'}")

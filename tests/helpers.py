@@ -5,12 +5,16 @@ equations (or from geometry, for the frustums) so that it cannot share a bug wit
 """
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mixnerf_eqx import RayBundle
 
-@pytest.fixture
-def key():
+
+@pytest.fixture(name="key")
+def key_fixture():
+    """A fixed PRNG key; import `key_fixture` into a test module to use it as `key`."""
     return jax.random.key(0)
 
 
@@ -24,6 +28,19 @@ def as_f64(*arrays):
     """The arrays as float64 numpy arrays (what the references compute in)."""
     converted = tuple(np.asarray(a, np.float64) for a in arrays)
     return converted[0] if len(converted) == 1 else converted
+
+
+def make_ray(origin=(0.1, -0.3, 2.0), direction=(0.3, -0.2, -1.0), *, near=2.0, far=6.0, radius=0.002):
+    """One float32 ray (empty batch shape)."""
+    direction = as_f32(direction)
+    return RayBundle(
+        origins=jnp.asarray(as_f32(origin)),
+        directions=jnp.asarray(direction),
+        viewdirs=jnp.asarray(direction / np.linalg.norm(direction)),
+        radii=jnp.full((1,), radius, jnp.float32),
+        near=jnp.full((1,), near, jnp.float32),
+        far=jnp.full((1,), far, jnp.float32),
+    )
 
 
 def random_ray(rng, num_samples, *, near=2.0, far=6.0, max_density=3.0):
@@ -49,7 +66,7 @@ def ref_blend_weights(density, t_edges, step_scale):
     alpha = 1.0 - np.exp(-density * deltas)
     transmittance = np.ones_like(alpha)
     for i in range(1, alpha.shape[0]):
-        transmittance[i] = transmittance[i - 1] * (1.0 - alpha[i])
+        transmittance[i] = transmittance[i - 1] * (1.0 - alpha[i - 1])
     return transmittance * alpha
 
 
@@ -224,10 +241,7 @@ def monte_carlo_frustum_points(rng, origin, direction, t0, t1, radius, shape, nu
         bound = radius * t if shape == "cone" else np.full_like(t, radius)
         inside = np.hypot(across[:, 0], across[:, 1]) <= bound
         points = (
-            origin
-            + along[inside, None] * axis
-            + across[inside, :1] * first
-            + across[inside, 1:] * second
+            origin + along[inside, None] * axis + across[inside, :1] * first + across[inside, 1:] * second
         )
         kept.append(points)
         count += points.shape[0]
@@ -249,8 +263,8 @@ def ref_blur_weights(weights, padding):
     return blurred
 
 
-def ref_inverse_cdf(bins, weights, u):
-    """Inverse transform of the piecewise-constant pdf `weights / sum(weights)` on `bins`."""
+def ref_cdf(bins, weights, t):
+    """The CDF at `t` of the piecewise-constant pdf proportional to `weights` on `bins`."""
     bins, weights = as_f64(bins, weights)
     cdf = np.concatenate([[0.0], np.cumsum(weights) / weights.sum()])
-    return np.interp(u, cdf, bins)
+    return np.interp(t, bins, cdf)

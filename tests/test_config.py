@@ -46,7 +46,9 @@ def test_bad_literal_and_bad_value(tmp_path):
 
 
 def test_overrides_parse_toml_values():
-    config = load_config(None, ["train.max_steps=12", "loss.lambda_depth=0.5", "model.lindisp=true", "train.run_dir=somewhere"])
+    config = load_config(
+        None, ["train.max_steps=12", "loss.lambda_depth=0.5", "model.lindisp=true", "train.run_dir=somewhere"]
+    )
     assert config.train.max_steps == 12
     assert config.loss.lambda_depth == 0.5
     assert config.model.lindisp is True
@@ -62,7 +64,15 @@ def test_config_is_frozen():
 
 
 def test_baseline_has_no_mixture_parts():
-    baseline = load_config(None, ["loss.lambda_colour_start=0", "loss.lambda_colour_end=0", "loss.lambda_depth=0", "loss.lambda_regen=0"])
+    baseline = load_config(
+        None,
+        [
+            "loss.lambda_colour_start=0",
+            "loss.lambda_colour_end=0",
+            "loss.lambda_depth=0",
+            "loss.lambda_regen=0",
+        ],
+    )
     assert baseline.loss.is_baseline
     model = build_model(baseline, key=jax.random.key(0))
     assert model.mixture is None
@@ -97,7 +107,9 @@ def test_baseline_config_is_builtin_without_nlls():
     mixnerf = load_config("configs/builtin.toml")
     baseline = load_config("configs/builtin_mipnerf.toml")
     assert baseline.loss.is_baseline and not mixnerf.loss.is_baseline
-    assert baseline.model == mixnerf.model and baseline.data == mixnerf.data and baseline.optim == mixnerf.optim
+    assert (
+        baseline.model == mixnerf.model and baseline.data == mixnerf.data and baseline.optim == mixnerf.optim
+    )
 
 
 def test_notebooks_are_valid_python():

@@ -151,5 +151,8 @@ def test_frustum_means_lie_on_the_ray(shape):
     offsets = np.asarray(means, np.float64) - origin
     t = offsets @ direction / (direction @ direction)
     np.testing.assert_allclose(offsets, t[:, None] * direction[None, :], atol=1e-5)
-    expected_t = [quadrature_frustum_moments(t0, t1, 0.01, shape)[0] for t0, t1 in zip(t_edges[:-1], t_edges[1:])]
+    expected_t = [
+        quadrature_frustum_moments(t0, t1, 0.01, shape)[0]
+        for t0, t1 in zip(t_edges[:-1], t_edges[1:], strict=True)
+    ]
     np.testing.assert_allclose(t, expected_t, rtol=1e-5)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from helpers import (
     as_f32,
+    make_ray,
     random_ray,
     ref_accumulation,
     ref_blend_weights,
@@ -12,7 +13,7 @@ from helpers import (
     ref_expected_depth,
 )
 
-from mixnerf_eqx import FieldOutputs, RayBundle, VolumeRenderer, blend_weights, composite_rgb, expected_depth
+from mixnerf_eqx import FieldOutputs, VolumeRenderer, blend_weights, composite_rgb, expected_depth
 from mixnerf_eqx._render import accumulation
 
 # float32 compositing of ~16 samples: a few ulp per product, relative to values of order one.
@@ -96,24 +97,14 @@ def test_regenerated_weights_follow_per_sample_ray_depth():
     t_edges, density, _ = random_ray(rng, 16)
     ray_depth = as_f32(rng.uniform(0.2, 2.5, 16))
     regenerated = np.asarray(blend_weights(*_jnp(density, t_edges, ray_depth)))
-    np.testing.assert_allclose(regenerated, ref_blend_weights(density, t_edges, ray_depth), rtol=RTOL, atol=ATOL)
+    np.testing.assert_allclose(
+        regenerated, ref_blend_weights(density, t_edges, ray_depth), rtol=RTOL, atol=ATOL
+    )
     ordinary = np.asarray(blend_weights(*_jnp(density, t_edges), jnp.float32(1.0)))
     assert np.max(np.abs(regenerated - ordinary)) > 1e-2
 
 
 # --- the renderer Module ----------------------------------------------------------------
-
-
-def _one_ray(direction):
-    direction = as_f32(direction)
-    return RayBundle(
-        origins=jnp.asarray([0.1, -0.3, 2.0], jnp.float32),
-        directions=jnp.asarray(direction),
-        viewdirs=jnp.asarray(direction / np.linalg.norm(direction)),
-        radii=jnp.full((1,), 0.002, jnp.float32),
-        near=jnp.full((1,), 2.0, jnp.float32),
-        far=jnp.full((1,), 6.0, jnp.float32),
-    )
 
 
 @pytest.mark.parametrize("background", [None, (1.0, 1.0, 1.0)])
@@ -125,7 +116,8 @@ def test_volume_renderer_matches_reference(background):
     outputs = FieldOutputs(
         density=jnp.asarray(as_f32(density)), rgb=jnp.asarray(as_f32(rgb)), beta=None, ray_depth=None
     )
-    level = VolumeRenderer(background=background)(outputs, jnp.asarray(as_f32(t_edges)), _one_ray(direction))
+    renderer = VolumeRenderer(background=background)
+    level = renderer(outputs, jnp.asarray(as_f32(t_edges)), make_ray(direction=direction))
     weights = ref_blend_weights(density, t_edges, norm)
     np.testing.assert_allclose(np.asarray(level.weights), weights, rtol=RTOL, atol=ATOL)
     np.testing.assert_allclose(

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import ConfigError, load_config
+from mixnerf_eqx import ConfigError
 from mixnerf_eqx._checkpoint import latest_checkpoint, read_checkpoint_meta
 from mixnerf_eqx._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
 from mixnerf_eqx._train import fit, make_optimizer, make_train_step, training_rays
@@ -36,8 +36,12 @@ def test_lambda_colour_ramp():
 
 def test_sample_space_annealing_matches_regnerf_formula():
     rays = mx.RayBundle(
-        origins=jnp.zeros((1, 3)), directions=jnp.ones((1, 3)), viewdirs=jnp.ones((1, 3)) / np.sqrt(3),
-        radii=jnp.ones((1, 1)), near=jnp.full((1, 1), 2.0), far=jnp.full((1, 1), 6.0),
+        origins=jnp.zeros((1, 3)),
+        directions=jnp.ones((1, 3)),
+        viewdirs=jnp.ones((1, 3)) / np.sqrt(3),
+        radii=jnp.ones((1, 1)),
+        near=jnp.full((1, 1), 2.0),
+        far=jnp.full((1, 1), 6.0),
     )
     n, f, p, m, big_n = 2.0, 6.0, 0.5, 0.5, 256
     mid = n + m * (f - n)
@@ -81,9 +85,17 @@ def _count_equations(config, tiny_scene):
 
 def test_zero_weight_terms_are_not_computed(tiny_config, tiny_scene):
     full = _count_equations(tiny_config, tiny_scene)
-    no_depth = _count_equations(dataclasses.replace(tiny_config, loss=dataclasses.replace(tiny_config.loss, lambda_depth=0.0)), tiny_scene)
-    no_regen = _count_equations(dataclasses.replace(tiny_config, loss=dataclasses.replace(tiny_config.loss, lambda_regen=0.0)), tiny_scene)
-    baseline_loss = dataclasses.replace(tiny_config.loss, lambda_colour_start=0.0, lambda_colour_end=0.0, lambda_depth=0.0, lambda_regen=0.0)
+    no_depth = _count_equations(
+        dataclasses.replace(tiny_config, loss=dataclasses.replace(tiny_config.loss, lambda_depth=0.0)),
+        tiny_scene,
+    )
+    no_regen = _count_equations(
+        dataclasses.replace(tiny_config, loss=dataclasses.replace(tiny_config.loss, lambda_regen=0.0)),
+        tiny_scene,
+    )
+    baseline_loss = dataclasses.replace(
+        tiny_config.loss, lambda_colour_start=0.0, lambda_colour_end=0.0, lambda_depth=0.0, lambda_regen=0.0
+    )
     baseline = _count_equations(dataclasses.replace(tiny_config, loss=baseline_loss), tiny_scene)
     assert baseline < no_depth < full
     assert baseline < no_regen < full
@@ -106,7 +118,12 @@ def test_short_run_learns_the_builtin_scene(tiny_config, tiny_scene):
 @pytest.mark.slow
 def test_resume_is_bit_identical(tiny_config, tiny_scene, tmp_path):
     config = _with_train(tiny_config, max_steps=24, checkpoint_every=8)
-    straight = fit(_with_train(config, run_dir=str(tmp_path / "a")), dataset=tiny_scene, progress=False, write_renders=False)
+    straight = fit(
+        _with_train(config, run_dir=str(tmp_path / "a")),
+        dataset=tiny_scene,
+        progress=False,
+        write_renders=False,
+    )
     interrupted_config = _with_train(config, run_dir=str(tmp_path / "b"))
     partial = fit(interrupted_config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=13)
     assert partial.metrics == {"step": 13}
@@ -115,7 +132,7 @@ def test_resume_is_bit_identical(tiny_config, tiny_scene, tmp_path):
     leaves_a = jax.tree_util.tree_leaves(eqx.filter(straight.model, eqx.is_array))
     leaves_b = jax.tree_util.tree_leaves(eqx.filter(resumed.model, eqx.is_array))
     assert len(leaves_a) == len(leaves_b)
-    for a, b in zip(leaves_a, leaves_b):
+    for a, b in zip(leaves_a, leaves_b, strict=False):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert straight.metrics["test"] == resumed.metrics["test"]
 
@@ -143,5 +160,7 @@ def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, m
 
     model = mx.build_model(config, key=jax.random.key(0))
     with pytest.raises(OSError):
-        save_checkpoint(config.train.run_dir, model=model, opt_state=(), step=99, key=jax.random.key(0), config={})
+        save_checkpoint(
+            config.train.run_dir, model=model, opt_state=(), step=99, key=jax.random.key(0), config={}
+        )
     assert latest_checkpoint(config.train.run_dir) == before

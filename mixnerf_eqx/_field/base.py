@@ -32,9 +32,7 @@ class AbstractField(eqx.Module):
         """Whether the field predicts `beta` and `ray_depth` (needed by the mixture losses)."""
 
     @abc.abstractmethod
-    def __call__(
-        self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None
-    ) -> FieldOutputs:
+    def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         """Evaluates the field at one Gaussian.
 
         **Arguments:**

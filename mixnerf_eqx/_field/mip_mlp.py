@@ -100,9 +100,7 @@ class MipNeRFField(AbstractField):
     def has_mixture_heads(self) -> bool:
         return self.beta_head is not None and self.depth_head is not None
 
-    def __call__(
-        self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None
-    ) -> FieldOutputs:
+    def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         inputs = integrated_positional_encoding(mean, cov, self.min_deg, self.max_deg)
         hidden = inputs
         for layer_index, layer in enumerate(self.trunk):

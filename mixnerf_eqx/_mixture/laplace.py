@@ -31,7 +31,8 @@ class LaplaceMixture(AbstractMixture):
     - `weight_eps`: `pi_j = w_j / (sum_m w_m + weight_eps)`. With `0` (the released code) an
       empty ray gets uniform coefficients instead of the released NaN; with `> 0` an empty
       ray's coefficients vanish, so it contributes only the floor (a constant).
-    - `likelihood_floor`: the `+1e-12` of the released code; `None` for the exact NLL.
+    - `likelihood_floor`: the `+1e-12` of the released code; `None` for the exact NLL (an
+      empty ray, whose exact NLL is infinite, then contributes 0).
     - `depth_scale`: `"colour"` reuses the three colour scales, so the depth likelihood is
       the product of three Laplace densities of the same residual (the released code);
       `"single"` uses one Laplace density whose scale is the mean of the three.
@@ -55,11 +56,15 @@ class LaplaceMixture(AbstractMixture):
             raise ValueError(f"evaluation must be 'log' or 'linear', got {self.evaluation!r}")
 
     def log_mixing_coefficients(self, weights: PerSample) -> PerSample:
-        """`log pi_j` (eq. 6), finite for every input."""
-        tiny = jnp.finfo(weights.dtype).tiny
-        log_weights = jnp.log(jnp.maximum(weights, tiny))
+        """`log pi_j` (eq. 6): `-inf` exactly where `w_j = 0`, never NaN.
+
+        With `weight_eps = 0`, a ray whose weights all vanish gets uniform coefficients.
+        """
+        positive = weights > 0
+        log_weights = jnp.where(positive, jnp.log(jnp.where(positive, weights, 1.0)), -jnp.inf)
         if self.weight_eps > 0:
             return log_weights - jnp.log(jnp.sum(weights) + self.weight_eps)
+        log_weights = jnp.where(jnp.any(positive), log_weights, 0.0)
         return log_weights - logsumexp(log_weights)
 
     def _nll(self, weights: PerSample, component_log_density: PerSample) -> Float[Array, ""]:
@@ -67,9 +72,15 @@ class LaplaceMixture(AbstractMixture):
             mixing = weights / (jnp.sum(weights) + self.weight_eps)
             likelihood = jnp.sum(mixing * jnp.exp(component_log_density))
             return -jnp.log(likelihood + (self.likelihood_floor or 0.0))
-        log_likelihood = logsumexp(self.log_mixing_coefficients(weights) + component_log_density)
+        terms = self.log_mixing_coefficients(weights) + component_log_density
+        # A ray without mass (every term -inf) takes the safe branch, so that no gradient
+        # passes through log(0).
+        has_mass = jnp.any(terms > -jnp.inf)
+        log_likelihood = logsumexp(jnp.where(has_mass, terms, 0.0))
         if self.likelihood_floor is None:
-            return -log_likelihood
+            # The exact NLL of an empty ray is +inf; it has no mixture to score and adds 0.
+            return jnp.where(has_mass, -log_likelihood, 0.0)
+        log_likelihood = jnp.where(has_mass, log_likelihood, -jnp.inf)
         return -jnp.logaddexp(log_likelihood, jnp.log(self.likelihood_floor))
 
     def colour_nll(

@@ -32,13 +32,9 @@ class Views:
     def __post_init__(self):
         num_views = self.images.shape[0]
         if self.camtoworlds.shape != (num_views, 3, 4):
-            raise ValueError(
-                f"camtoworlds has shape {self.camtoworlds.shape}, expected ({num_views}, 3, 4)"
-            )
+            raise ValueError(f"camtoworlds has shape {self.camtoworlds.shape}, expected ({num_views}, 3, 4)")
         if self.depths is not None and self.depths.shape != self.images.shape[:3]:
-            raise ValueError(
-                f"depths has shape {self.depths.shape}, expected {self.images.shape[:3]}"
-            )
+            raise ValueError(f"depths has shape {self.depths.shape}, expected {self.images.shape[:3]}")
         if not self.ids:
             object.__setattr__(self, "ids", tuple(range(num_views)))
 

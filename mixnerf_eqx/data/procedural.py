@@ -240,9 +240,7 @@ def _intersect_scene(
             intersect_ground(origins, directions, GROUND_RADIUS),
             intersect_sphere(origins, directions, SPHERE_CENTER, SPHERE_RADIUS),
             intersect_box(origins, directions, BOX_MIN, BOX_MAX),
-            intersect_cylinder(
-                origins, directions, CYLINDER_CENTER, CYLINDER_RADIUS, CYLINDER_HEIGHT
-            ),
+            intersect_cylinder(origins, directions, CYLINDER_CENTER, CYLINDER_RADIUS, CYLINDER_HEIGHT),
         ]
     )
 
@@ -415,9 +413,7 @@ def _check_count(value: int, name: str, minimum: int, maximum: int) -> None:
         raise ValueError(f"{name} must lie in [{minimum}, {maximum}], got {value}")
 
 
-def make_builtin_scene(
-    *, resolution: int = 64, num_train_views: int = 4, num_test_views: int = 8
-) -> Dataset:
+def make_builtin_scene(*, resolution: int = 64, num_train_views: int = 4, num_test_views: int = 8) -> Dataset:
     """Generates the built-in procedural scene.
 
     The scene is deterministic: every call with the same arguments returns bit-identical

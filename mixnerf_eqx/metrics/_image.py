@@ -7,7 +7,9 @@ def mse_to_psnr(mse: float) -> float:
     return float(-10.0 * np.log10(max(mse, 1e-30)))
 
 
-def psnr(prediction: Float[np.ndarray, "height width 3"], target: Float[np.ndarray, "height width 3"]) -> float:
+def psnr(
+    prediction: Float[np.ndarray, "height width 3"], target: Float[np.ndarray, "height width 3"]
+) -> float:
     """Peak signal-to-noise ratio (data range 1)."""
     difference = np.asarray(prediction, np.float64) - np.asarray(target, np.float64)
     return mse_to_psnr(float(np.mean(difference**2)))

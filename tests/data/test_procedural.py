@@ -67,15 +67,11 @@ def _on_some_surface(points, tol):
 def _inside_some_solid(points):
     """Whether each point lies strictly inside a solid shape."""
     x, y, z = points[..., 0], points[..., 1], points[..., 2]
-    in_sphere = (
-        np.linalg.norm(points - procedural.SPHERE_CENTER, axis=-1) < procedural.SPHERE_RADIUS
-    )
+    in_sphere = np.linalg.norm(points - procedural.SPHERE_CENTER, axis=-1) < procedural.SPHERE_RADIUS
     in_box = np.all((points > procedural.BOX_MIN) & (points < procedural.BOX_MAX), axis=-1)
     cx, cy = procedural.CYLINDER_CENTER
     in_cylinder = (
-        (np.hypot(x - cx, y - cy) < procedural.CYLINDER_RADIUS)
-        & (z > 0)
-        & (z < procedural.CYLINDER_HEIGHT)
+        (np.hypot(x - cx, y - cy) < procedural.CYLINDER_RADIUS) & (z > 0) & (z < procedural.CYLINDER_HEIGHT)
     )
     return in_sphere | in_box | in_cylinder
 
@@ -83,7 +79,7 @@ def _inside_some_solid(points):
 def test_determinism():
     first = make_builtin_scene(resolution=32, num_train_views=3, num_test_views=4)
     second = make_builtin_scene(resolution=32, num_train_views=3, num_test_views=4)
-    for a, b in zip(_splits(first), _splits(second)):
+    for a, b in zip(_splits(first), _splits(second), strict=False):
         for name in ("images", "camtoworlds", "depths"):
             x, y = getattr(a, name), getattr(b, name)
             assert x.dtype == y.dtype
@@ -100,7 +96,7 @@ def test_dataset_fields(scene):
     assert scene.train.ids == (0, 1, 2, 3)
     assert scene.test.ids == tuple(range(4, 12))
     expected_focal = 0.5 * 64 / np.tan(0.5 * np.deg2rad(procedural.FOV_DEGREES))
-    for views, num_views in zip(_splits(scene), (4, 8)):
+    for views, num_views in zip(_splits(scene), (4, 8), strict=False):
         assert views.images.shape == (num_views, 64, 64, 3)
         assert views.depths.shape == (num_views, 64, 64)
         assert views.camtoworlds.shape == (num_views, 3, 4)
@@ -139,9 +135,7 @@ def test_cameras(scene):
             assert np.linalg.norm(centre) == pytest.approx(procedural.CAMERA_RADIUS, rel=1e-6)
             # OpenGL: the camera looks along its -z axis, towards the target, with +z world up.
             to_target = procedural.LOOK_AT - centre
-            np.testing.assert_allclose(
-                -rotation[:, 2], to_target / np.linalg.norm(to_target), atol=1e-6
-            )
+            np.testing.assert_allclose(-rotation[:, 2], to_target / np.linalg.norm(to_target), atol=1e-6)
             assert abs(rotation[2, 0]) < 1e-6  # no roll: camera x stays horizontal
             assert rotation[2, 1] > 0
             assert centre[2] > 0
