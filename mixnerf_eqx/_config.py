@@ -26,6 +26,7 @@ class ConfigError(ValueError):
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
     scene: str = "builtin"  # the dataset; "builtin" is the procedural scene shipped in the package
+    data_dir: str = ""  # dataset root; empty: the environment variable MIXNERF_DATA_DIR
     resolution: int = 64  # built-in scene: image height and width in pixels
     num_train_views: int = 4  # number of training views
     num_test_views: int = 8  # built-in scene: number of held-out test views

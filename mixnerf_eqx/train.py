@@ -18,6 +18,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--config", type=Path, default=None, help="TOML config (default: configs/builtin.toml)"
     )
     parser.add_argument("--run-dir", default=None, help="output folder (default: the config's train.run_dir)")
+    parser.add_argument(
+        "--data-dir", default=None, help="dataset root (default: data.data_dir, else $MIXNERF_DATA_DIR)"
+    )
     parser.add_argument("--no-typecheck", action="store_true", help="turn off runtime shape checks")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument(
@@ -45,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     overrides = list(args.overrides)
     if args.run_dir is not None:
         overrides.append(f"train.run_dir={args.run_dir!r}".replace("'", '"'))
+    if args.data_dir is not None:
+        overrides.append(f"data.data_dir={args.data_dir!r}".replace("'", '"'))
     if args.no_typecheck:
         overrides.append("train.typecheck=false")
     try:
