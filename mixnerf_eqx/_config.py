@@ -109,6 +109,7 @@ class TrainConfig:
     render_chunk: int = 4096  # rays rendered at once when rendering images
     run_dir: str = "runs/builtin"  # where checkpoints, metrics and renders go
     typecheck: bool = True  # runtime jaxtyping/beartype checks (trace time only)
+    max_nonfinite_steps: int = 20  # stop after this many consecutive skipped (non-finite) steps
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import jaxtyping
 import numpy as np
 import optax
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 from tqdm.auto import tqdm
 
 from ._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
@@ -69,6 +69,18 @@ class StepMetrics(eqx.Module):
     psnr: Float[Array, ""]
     learning_rate: Float[Array, ""]
     lambda_colour: Float[Array, ""]
+    skipped: Bool[Array, ""]
+
+
+class TrainingDiverged(RuntimeError):
+    """Too many consecutive steps had a non-finite loss or gradient."""
+
+
+def _all_finite(tree) -> Bool[Array, ""]:
+    leaves = [
+        jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_array))
+    ]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
 def draw_batch(
@@ -112,13 +124,22 @@ def make_train_step(
         (_, terms), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
             model, rays, target, lambda_colour, weights, key=render_key
         )
-        updates, opt_state = optimizer.update(grads, opt_state, eqx.filter(model, eqx.is_array))
-        model = eqx.apply_updates(model, updates)
+        updates, new_opt_state = optimizer.update(grads, opt_state, eqx.filter(model, eqx.is_array))
+        new_model = eqx.apply_updates(model, updates)
+        # A step whose loss or gradients are not finite is not applied: the model and the
+        # optimiser state (moments and step count) stay exactly as they were.
+        finite = jnp.isfinite(terms.total) & _all_finite(grads)
+        model, opt_state = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(finite, new, old) if eqx.is_array(new) else new,
+            (new_model, new_opt_state),
+            (model, opt_state),
+        )
         metrics = StepMetrics(
             terms=terms,
             psnr=-10.0 * jnp.log10(terms.mse_fine),
             learning_rate=schedule(step),
             lambda_colour=lambda_colour,
+            skipped=~finite,
         )
         return model, opt_state, metrics
 
@@ -193,6 +214,7 @@ _COSMETIC_TRAIN_KEYS = (
     "render_chunk",
     "run_dir",
     "typecheck",
+    "max_nonfinite_steps",
 )
 
 
@@ -297,6 +319,7 @@ def fit(
     jaxtyping.config.update("jaxtyping_disable", not config.train.typecheck)
     bar = tqdm(total=max_steps, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
     step = logged_step = start
+    skipped_total = skipped_streak = 0
     timer = time.perf_counter()
     try:
         with open(log_path, "a") as log_file:
@@ -305,8 +328,21 @@ def fit(
                     model, opt_state, data, jnp.asarray(step, jnp.int32), train_key
                 )
                 done = step + 1
+                if bool(metrics.skipped):
+                    skipped_total += 1
+                    skipped_streak += 1
+                    if skipped_streak >= config.train.max_nonfinite_steps:
+                        last_good = latest_checkpoint(run_dir)
+                        raise TrainingDiverged(
+                            f"step {done}: {skipped_streak} consecutive steps had a non-finite loss or "
+                            f"gradient and were not applied; stopping. The last good checkpoint is "
+                            f"{last_good or 'none (no checkpoint was written yet)'}; lower the learning "
+                            "rate or check the data, then resume from it."
+                        )
+                else:
+                    skipped_streak = 0
                 if done % log_every == 0 or done == last_step:
-                    scalars = {"step": done, **_scalars(metrics)}
+                    scalars = {"step": done, **_scalars(metrics), "skipped_steps": skipped_total}
                     elapsed = time.perf_counter() - timer
                     scalars["steps_per_s"] = (done - logged_step) / max(elapsed, 1e-9)
                     timer, logged_step = time.perf_counter(), done
@@ -316,6 +352,7 @@ def fit(
                         loss=f"{scalars['loss']:.4f}",
                         psnr=f"{scalars['psnr']:.2f}",
                         it_s=f"{scalars['steps_per_s']:.2f}",
+                        skipped=skipped_total,
                     )
                     bar.update(done - bar.n)
                 if config.train.eval_every and done % config.train.eval_every == 0 and done < max_steps:
@@ -323,7 +360,13 @@ def fit(
                     means, _, _ = evaluate(model, dataset, chunk=config.train.render_chunk, view_ids=ids)
                     bar.write(f"step {done}: held-out " + ", ".join(f"{k} {v:.4f}" for k, v in means.items()))
                     log_file.write(json.dumps({"step": done, "eval": means}) + "\n")
-                if config.train.checkpoint_every and done % config.train.checkpoint_every == 0:
+                # No checkpoint inside a run of skipped steps: the last good one must stay the
+                # newest, so that a diverging run can be resumed from before the trouble began.
+                if (
+                    config.train.checkpoint_every
+                    and done % config.train.checkpoint_every == 0
+                    and not skipped_streak
+                ):
                     checkpoint_now(done)
             step = last_step
     except KeyboardInterrupt:
@@ -337,11 +380,17 @@ def fit(
     if step != start or latest_checkpoint(run_dir) is None:
         checkpoint_now(step)
     if step < max_steps:
-        return TrainResult(model=model, metrics={"step": step}, run_dir=run_dir, history=history)
+        return TrainResult(
+            model=model,
+            metrics={"step": step, "skipped_steps": skipped_total},
+            run_dir=run_dir,
+            history=history,
+        )
 
     means, per_view, (rgb, depth, _) = evaluate(model, dataset, chunk=config.train.render_chunk)
     metrics = {
         "step": step,
+        "skipped_steps": skipped_total,
         "scene": dataset.name,
         "test": means,
         "per_view": per_view,

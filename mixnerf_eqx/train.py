@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_typecheck:
         os.environ["MIXNERF_EQX_TYPECHECK"] = "0"
     from mixnerf_eqx import ConfigError, load_config
-    from mixnerf_eqx._train import fit
+    from mixnerf_eqx._train import TrainingDiverged, fit
 
     config_path = args.config
     if config_path is None:
@@ -59,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except TrainingDiverged as error:
+        print(f"\ntraining stopped: {error}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
     test = result.metrics["test"]

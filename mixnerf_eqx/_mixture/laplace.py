@@ -12,9 +12,19 @@ from .base import AbstractMixture
 def laplace_log_density(
     x: Float[Array, "*#batch"], location: Float[Array, "*#batch"], scale: Float[Array, "*#batch"]
 ) -> Float[Array, "*#batch"]:
-    """`log( exp(-|x - location| / scale) / (2 scale) )`, elementwise with broadcasting."""
-    scale = jnp.maximum(scale, jnp.finfo(scale.dtype).tiny)
-    return -jnp.log(2 * scale) - jnp.abs(x - location) / scale
+    """`log( exp(-|x - location| / scale) / (2 scale) )`, elementwise with broadcasting.
+
+    Finite, with finite gradients, for every scale down to the smallest normal float. Two
+    guards make that so. `1 / scale` is formed as `exp(-log(scale))`: then no local
+    derivative is `1 / scale^2`, which overflows float32 below about 1e-19 and, multiplied by
+    the exactly-zero responsibility of such a component, would give `0 * inf = NaN` in the
+    backward pass. And the residual term is clipped at `-1e30`, far below any term that can
+    matter in a mixture, so that a sum over channels cannot overflow to `-inf`.
+    """
+    tiny = jnp.finfo(scale.dtype).tiny
+    log_scale = jnp.log(jnp.maximum(scale, tiny))
+    residual_term = jnp.maximum(-jnp.abs(x - location) * jnp.exp(-log_scale), -1e30)
+    return residual_term - log_scale - jnp.log(2.0)
 
 
 class LaplaceMixture(AbstractMixture):
