@@ -25,11 +25,18 @@ class ConfigError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
-    scene: str = "builtin"  # the dataset; "builtin" is the procedural scene shipped in the package
+    dataset: Literal["builtin", "blender", "llff", "dtu", "transforms"] = "builtin"  # the files' format
+    scene: str = "builtin"  # scene folder (lego, fern, scan8, ...); "builtin": the procedural scene
     data_dir: str = ""  # dataset root; empty: the environment variable MIXNERF_DATA_DIR
+    protocol: Literal["mixnerf", "dietnerf"] = "mixnerf"  # Blender split: MixNeRF's or DietNeRF's views
     resolution: int = 64  # built-in scene: image height and width in pixels
     num_train_views: int = 4  # number of training views
     num_test_views: int = 8  # built-in scene: number of held-out test views
+    max_test_views: int = 0  # files: keep this many of the protocol's test views, evenly spaced (0: all)
+    near: float = 0.0  # with far > 0: replaces the dataset's near bound
+    far: float = 0.0  # > 0: replaces the dataset's far bound (transforms.json scenes need no bounds)
+    image_downscale: int = 1  # transforms.json scenes: area-downsample the images by this factor
+    dtu_mask_dir: str = ""  # DTU object masks (RegNeRF's idrmasks); empty: found under the dataset root
 
 
 @dataclasses.dataclass(frozen=True)

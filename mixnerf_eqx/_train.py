@@ -23,9 +23,9 @@ from ._custom_types import PRNGKey
 from ._images import colourise_depth, save_png
 from ._loss import LossTerms, loss_fn
 from ._model import MixNeRF
-from ._rays import RayBundle, camera_rays
+from ._rays import RayBundle
 from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
-from .data import Dataset, Views, load_dataset
+from .data import Dataset, Views, load_dataset, rays_for_views
 from .metrics import depth_error, psnr, ssim
 
 
@@ -54,7 +54,7 @@ class TrainingRays(eqx.Module):
 def training_rays(dataset: Dataset) -> TrainingRays:
     """Builds the device-resident ray table of the training views."""
     views = dataset.train
-    rays = camera_rays(views.camtoworlds, views.focal, views.height, views.width, dataset.near, dataset.far)
+    rays = rays_for_views(views, dataset.near, dataset.far)
     num_pixels = views.height * views.width
     return TrainingRays(
         rays=rays.reshape(views.num_views, num_pixels),
@@ -176,21 +176,14 @@ def render_rays(model: MixNeRF, rays: RayBundle, chunk: int = 4096):
 
 def render_views(model: MixNeRF, views: Views, near: float, far: float, chunk: int = 4096):
     """Renders every view of `views`: `(rgb, depth, acc)` per view, as numpy arrays."""
-    rays = camera_rays(views.camtoworlds, views.focal, views.height, views.width, near, far)
-    return render_rays(model, rays, chunk)
+    return render_rays(model, rays_for_views(views, near, far), chunk)
 
 
 def evaluate(model: MixNeRF, dataset: Dataset, *, chunk: int = 4096, view_ids: list[int] | None = None):
     """Renders test views and returns `(mean metrics, per-view metrics, renders)`."""
     views = dataset.test
     if view_ids is not None:
-        views = dataclasses.replace(
-            views,
-            images=views.images[view_ids],
-            camtoworlds=views.camtoworlds[view_ids],
-            depths=None if views.depths is None else views.depths[view_ids],
-            ids=tuple(views.ids[i] for i in view_ids),
-        )
+        views = views.select(view_ids)
     rgb, depth, acc = render_views(model, views, dataset.near, dataset.far, chunk)
     per_view = []
     for index in range(views.num_views):

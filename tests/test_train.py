@@ -103,7 +103,11 @@ def test_zero_weight_terms_are_not_computed(tiny_config, tiny_scene):
 
 @pytest.mark.slow
 def test_short_run_learns_the_builtin_scene(tiny_config, tiny_scene):
-    result = fit(tiny_config, dataset=tiny_scene, progress=False, write_renders=True, log_every=10)
+    # 300 steps: the shared fixture's 150 leave the held-out PSNR too close to the bar to be a
+    # stable test (measured 12.4-13.2 dB over seeds 0-2 at 150 steps, 13.7-14.2 dB at 300,
+    # against a bar of 12.8 dB).
+    config = _with_train(tiny_config, max_steps=300)
+    result = fit(config, dataset=tiny_scene, progress=False, write_renders=True, log_every=10)
     losses = [entry["mse_fine"] for entry in result.history]
     assert np.mean(losses[-3:]) < 0.5 * np.mean(losses[:2])
     # The best constant colour for the held-out views is their own mean colour.
@@ -126,7 +130,7 @@ def test_resume_is_bit_identical(tiny_config, tiny_scene, tmp_path):
     )
     interrupted_config = _with_train(config, run_dir=str(tmp_path / "b"))
     partial = fit(interrupted_config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=13)
-    assert partial.metrics == {"step": 13}
+    assert partial.metrics == {"step": 13, "skipped_steps": 0}
     assert read_checkpoint_meta(latest_checkpoint(tmp_path / "b"))["step"] == 13
     resumed = fit(interrupted_config, dataset=tiny_scene, progress=False, write_renders=False)
     leaves_a = jax.tree_util.tree_leaves(eqx.filter(straight.model, eqx.is_array))

@@ -1,12 +1,14 @@
 """The typed dataset that every loader produces."""
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 
 from .._custom_types import DepthStack, ImageStack, PoseStack
+from .._rays import RayBundle, camera_rays
 
 
 @dataclasses.dataclass(frozen=True)
@@ -21,6 +23,15 @@ class Views:
     - `depths`: true depth along the unnormalised ray direction (camera z-depth), `inf`
       where the ray hits nothing; `None` when the scene has no true depth.
     - `ids`: the views' indices in the source dataset, for reporting.
+    - `intrinsics`: per-view pinhole matrices `K` in the OpenCV pixel convention (see
+      `mixnerf_eqx._rays`), for cameras whose principal point is off-centre, whose two focal
+      lengths differ, or whose intrinsics differ from view to view (DTU); `None`: `focal` on
+      both axes and the principal point at the image centre.
+    - `masks`: object masks, true on the object (DTU's evaluation masks); `None` when the
+      metrics use every pixel.
+    - `ndc`: the rays live in normalised device coordinates (forward-facing LLFF scenes).
+    - `origin_plane_z`: ray origins move along their rays onto the world plane
+      `z = origin_plane_z` (RegNeRF's DTU rays); `None` keeps them at the camera centres.
     """
 
     images: ImageStack
@@ -28,6 +39,10 @@ class Views:
     focal: float
     depths: DepthStack | None = None
     ids: tuple[int, ...] = ()
+    intrinsics: Float[np.ndarray, "num_views 3 3"] | None = None
+    masks: Bool[np.ndarray, "num_views height width"] | None = None
+    ndc: bool = False
+    origin_plane_z: float | None = None
 
     def __post_init__(self):
         num_views = self.images.shape[0]
@@ -35,8 +50,16 @@ class Views:
             raise ValueError(f"camtoworlds has shape {self.camtoworlds.shape}, expected ({num_views}, 3, 4)")
         if self.depths is not None and self.depths.shape != self.images.shape[:3]:
             raise ValueError(f"depths has shape {self.depths.shape}, expected {self.images.shape[:3]}")
+        if self.intrinsics is not None and self.intrinsics.shape != (num_views, 3, 3):
+            raise ValueError(f"intrinsics has shape {self.intrinsics.shape}, expected ({num_views}, 3, 3)")
+        if self.masks is not None and self.masks.shape != self.images.shape[:3]:
+            raise ValueError(f"masks has shape {self.masks.shape}, expected {self.images.shape[:3]}")
+        if self.ndc and self.origin_plane_z is not None:
+            raise ValueError("NDC rays start on the near plane: origin_plane_z must be None")
         if not self.ids:
             object.__setattr__(self, "ids", tuple(range(num_views)))
+        if len(self.ids) != num_views:
+            raise ValueError(f"{len(self.ids)} ids for {num_views} views")
 
     @property
     def num_views(self) -> int:
@@ -50,6 +73,23 @@ class Views:
     def width(self) -> int:
         return self.images.shape[2]
 
+    def select(self, indices: Sequence[int]) -> "Views":
+        """The views at positions `indices` (not source ids), with all their per-view data."""
+        indices = [int(i) for i in indices]
+
+        def pick(array):
+            return None if array is None else array[indices]
+
+        return dataclasses.replace(
+            self,
+            images=self.images[indices],
+            camtoworlds=self.camtoworlds[indices],
+            depths=pick(self.depths),
+            ids=tuple(self.ids[i] for i in indices),
+            intrinsics=pick(self.intrinsics),
+            masks=pick(self.masks),
+        )
+
 
 @dataclasses.dataclass(frozen=True)
 class Dataset:
@@ -62,6 +102,8 @@ class Dataset:
     - `near`, `far`: sampling bounds along the unnormalised ray directions.
     - `white_background`: composite renders on white (Blender-style scenes).
     - `frustum`: `"cone"` for bounded scenes, `"cylinder"` for NDC (LLFF) scenes.
+
+    Build the rays of either split with `rays_for_views`.
     """
 
     name: str
@@ -75,6 +117,34 @@ class Dataset:
     def __post_init__(self):
         if not 0 <= self.near < self.far:
             raise ValueError(f"need 0 <= near < far, got near={self.near}, far={self.far}")
+
+
+def rays_for_views(views: Views, near: float, far: float) -> RayBundle:
+    """The rays through every pixel of `views`, in the ray space the views ask for.
+
+    This is `mixnerf_eqx._rays.camera_rays` with the views' own intrinsics, NDC flag and
+    origin plane, so that training and evaluation build rays the same way for every dataset.
+
+    **Arguments:**
+
+    - `views`: the posed images.
+    - `near`, `far`: sampling bounds along the unnormalised directions (a `Dataset`'s).
+
+    **Returns:**
+
+    A float32 `RayBundle` with batch shape `(num_views, height, width)`.
+    """
+    return camera_rays(
+        views.camtoworlds,
+        views.focal,
+        views.height,
+        views.width,
+        near,
+        far,
+        intrinsics=views.intrinsics,
+        ndc=views.ndc,
+        origin_plane_z=views.origin_plane_z,
+    )
 
 
 def check_images(images: Float[np.ndarray, "..."], name: str) -> None:

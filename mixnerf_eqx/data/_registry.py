@@ -1,12 +1,125 @@
-from .._config import DataConfig
-from ._dataset import Dataset
+"""Finding a scene's files under the dataset root and loading them with their format's loader.
 
-SCENES = ("builtin",)
+The dataset root is `data.data_dir` (which `--data-dir` sets), else the environment variable
+`MIXNERF_DATA_DIR`. Under it each format keeps its usual layout:
+
+- Blender: `nerf_synthetic/<scene>/`
+- LLFF: `nerf_llff_data/<scene>/`
+- DTU: `rs_dtu_4/DTU/<scan>/` (or `rs_dtu_4/<scan>/`), with RegNeRF's masks in `idrmasks/<scan>/`
+  (or `submission_data/idrmasks/<scan>/`, or `data.dtu_mask_dir`)
+- transforms.json: `<scene>/` (a path relative to the root, or an absolute path)
+
+A scene folder directly under the root (`<root>/<scene>/`) is found too, so the root may also
+be the `nerf_synthetic/` (or `nerf_llff_data/`, `rs_dtu_4/DTU/`) folder itself.
+"""
+
+import dataclasses
+import os
+from pathlib import Path
+
+from .._config import DataConfig
+from . import blender, dtu, llff, transforms
+from ._dataset import Dataset
+from ._errors import DatasetError
+
+__all__ = ["DATASETS", "ENV_DATA_DIR", "data_root", "find_scene", "load_dataset"]
+
+ENV_DATA_DIR = "MIXNERF_DATA_DIR"
+DATASETS = ("builtin", "blender", "llff", "dtu", "transforms")
+_LAYOUTS = {
+    "blender": ("nerf_synthetic",),
+    "llff": ("nerf_llff_data",),
+    "dtu": ("rs_dtu_4/DTU", "rs_dtu_4"),
+    "transforms": (),
+}
+_BENCHMARK_SCENES = {"blender": blender.SCENES, "llff": llff.SCENES, "dtu": dtu.SCANS, "transforms": ()}
+_RELEASES = {
+    "blender": "the NeRF synthetic release (nerf_synthetic/)",
+    "llff": "the NeRF LLFF release (nerf_llff_data/)",
+    "dtu": "pixelNeRF's DTU release (rs_dtu_4/)",
+    "transforms": "the scene's folder with its transforms.json",
+}
+_MASK_LAYOUTS = ("idrmasks", "submission_data/idrmasks")
+
+
+def data_root(config: DataConfig) -> Path:
+    """The dataset root: `config.data_dir`, else `$MIXNERF_DATA_DIR`; it must be a folder."""
+    raw = config.data_dir or os.environ.get(ENV_DATA_DIR, "")
+    if not raw:
+        raise DatasetError(
+            f"no dataset root for the {config.dataset} scene {config.scene!r}: pass --data-dir DIR, set "
+            f"data.data_dir in the config, or set the environment variable {ENV_DATA_DIR}."
+        )
+    root = Path(raw).expanduser()
+    source = "data.data_dir (--data-dir)" if config.data_dir else ENV_DATA_DIR
+    if not root.is_dir():
+        raise DatasetError(f"dataset root not found: {root} (from {source}) is not a folder. Fix the path.")
+    return root
+
+
+def _subfolders(folder: Path, limit: int = 20) -> str:
+    if not folder.is_dir():
+        return "none"
+    names = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not names:
+        return "none"
+    return ", ".join(names[:limit]) + (", ..." if len(names) > limit else "")
+
+
+def find_scene(root: Path, dataset: str, scene: str) -> Path:
+    """The folder of `scene` under `root` in `dataset`'s layout (see the module docstring).
+
+    A scene that is not there is a `DatasetError` that lists where it looked, the benchmark's
+    scenes and the folders that do exist.
+    """
+    if not scene or scene in (".", ".."):
+        raise DatasetError(f"data.scene is {scene!r}; name the scene's folder (for example lego or fern).")
+    candidates = [root / layout / scene for layout in _LAYOUTS[dataset]] + [root / scene]
+    for candidate in candidates:
+        if candidate.is_dir():
+            return candidate
+    looked = " or ".join(str(c) for c in candidates)
+    known = _BENCHMARK_SCENES[dataset]
+    found = "; ".join(
+        f"folders in {folder}: {_subfolders(folder)}"
+        for folder in [root / layout for layout in _LAYOUTS[dataset]] + [root]
+        if folder.is_dir()
+    )
+    if known and scene not in known:
+        raise DatasetError(
+            f"unknown {dataset} scene {scene!r}: there is no {looked}. The benchmark's scenes are "
+            f"{', '.join(known)}; {found}. Fix data.scene."
+        )
+    raise DatasetError(
+        f"{dataset} scene {scene!r} not found: there is no {looked} ({found}). Download "
+        f"{_RELEASES[dataset]} and point --data-dir (or {ENV_DATA_DIR}) at the folder that holds it."
+    )
+
+
+def _mask_roots(config: DataConfig, root: Path) -> list[Path]:
+    if config.dtu_mask_dir:
+        return [Path(config.dtu_mask_dir).expanduser()]
+    return [root / layout for layout in _MASK_LAYOUTS if (root / layout).is_dir()]
 
 
 def load_dataset(config: DataConfig) -> Dataset:
-    """Loads the dataset that `config` names."""
-    if config.scene == "builtin":
+    """Loads the dataset that `config` names.
+
+    **Arguments:**
+
+    - `config`: the data section of a run's config.
+
+    **Returns:**
+
+    The `Dataset`, with the protocol's training and test views. Every problem with the files
+    is a `DatasetError` (a `ValueError`) whose message names the file and what to do.
+    """
+    if config.dataset == "builtin":
+        if config.scene != "builtin":
+            raise DatasetError(
+                f"unknown scene {config.scene!r} for data.dataset = \"builtin\" (whose only scene is "
+                f"\"builtin\"); for a scene on disk set data.dataset to one of {', '.join(DATASETS[1:])}."
+            )
         from .procedural import make_builtin_scene
 
         return make_builtin_scene(
@@ -14,4 +127,55 @@ def load_dataset(config: DataConfig) -> Dataset:
             num_train_views=config.num_train_views,
             num_test_views=config.num_test_views,
         )
-    raise ValueError(f"unknown scene {config.scene!r}; available: {', '.join(SCENES)}")
+    if config.dataset not in DATASETS:
+        raise DatasetError(f"unknown dataset format {config.dataset!r}; choose one of {', '.join(DATASETS)}.")
+    if config.protocol != "mixnerf" and config.dataset != "blender":
+        raise DatasetError(
+            f"data.protocol = {config.protocol!r} is a Blender protocol; the {config.dataset} scenes have one "
+            "protocol. Set data.protocol = \"mixnerf\"."
+        )
+    if config.num_train_views < 1:
+        raise DatasetError(f"data.num_train_views must be at least 1, got {config.num_train_views}.")
+    if config.far > 0 and not 0 <= config.near < config.far:
+        raise DatasetError(f"need 0 <= data.near < data.far, got near={config.near}, far={config.far}.")
+    bounds = (config.near, config.far) if config.far > 0 else None
+
+    if config.dataset == "transforms" and Path(config.scene).expanduser().is_absolute():
+        scene_dir = Path(config.scene).expanduser()
+        if not scene_dir.is_dir():
+            raise DatasetError(f"transforms.json scene not found: {scene_dir} is not a folder. Fix data.scene.")
+    else:
+        scene_dir = find_scene(data_root(config), config.dataset, config.scene)
+
+    if config.dataset == "blender":
+        dataset = blender.load_blender(
+            scene_dir,
+            num_train_views=config.num_train_views,
+            protocol=config.protocol,
+            max_test_views=config.max_test_views,
+        )
+    elif config.dataset == "llff":
+        dataset = llff.load_llff(
+            scene_dir, num_train_views=config.num_train_views, max_test_views=config.max_test_views
+        )
+    elif config.dataset == "dtu":
+        dataset = dtu.load_dtu(
+            scene_dir,
+            num_train_views=config.num_train_views,
+            mask_roots=_mask_roots(config, data_root(config)),
+            masks_required=bool(config.dtu_mask_dir),
+            max_test_views=config.max_test_views,
+        )
+    else:
+        if config.image_downscale < 1:
+            raise DatasetError(f"data.image_downscale must be at least 1, got {config.image_downscale}.")
+        return transforms.load_transforms(
+            scene_dir,
+            num_train_views=config.num_train_views,
+            max_test_views=config.max_test_views,
+            downscale=config.image_downscale,
+            bounds=bounds,
+        )
+    if bounds is not None:
+        dataset = dataclasses.replace(dataset, near=bounds[0], far=bounds[1])
+    return dataset

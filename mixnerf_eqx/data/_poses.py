@@ -1,0 +1,71 @@
+"""Camera pose utilities shared by the loaders (float64 numpy, OpenGL camera convention)."""
+
+import numpy as np
+from jaxtyping import Float
+
+
+def _normalise(vector: np.ndarray) -> np.ndarray:
+    return vector / np.linalg.norm(vector)
+
+
+def average_pose(camtoworlds: Float[np.ndarray, "num_views 3 4"]) -> Float[np.ndarray, "3 4"]:
+    """The mean camera of the NeRF LLFF loader: the mean centre, looking along the mean
+    backward axis, with the mean up axis made orthogonal to it."""
+    poses = np.asarray(camtoworlds, np.float64)
+    centre = poses[:, :, 3].mean(axis=0)
+    backward = _normalise(poses[:, :, 2].sum(axis=0))
+    up = poses[:, :, 1].sum(axis=0)
+    right = _normalise(np.cross(up, backward))
+    up = _normalise(np.cross(backward, right))
+    return np.stack([right, up, backward, centre], axis=1)
+
+
+def _homogeneous(poses: np.ndarray) -> np.ndarray:
+    bottom = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), poses.shape[:-2] + (1, 4))
+    return np.concatenate([poses, bottom], axis=-2)
+
+
+def recenter_poses(camtoworlds: Float[np.ndarray, "num_views 3 4"]) -> Float[np.ndarray, "num_views 3 4"]:
+    """Expresses the cameras in the frame of their `average_pose` (a rigid change of frame):
+    the average camera then sits at the origin, looking along -z."""
+    poses = np.asarray(camtoworlds, np.float64)
+    world_to_average = np.linalg.inv(_homogeneous(average_pose(poses)))
+    return (world_to_average @ _homogeneous(poses))[:, :3, :]
+
+
+def decompose_projection(
+    projection: Float[np.ndarray, "3 4"],
+) -> tuple[Float[np.ndarray, "3 3"], Float[np.ndarray, "3 4"]]:
+    """Splits a camera projection `P = K [R | t]` (OpenCV convention) into its parts.
+
+    The RQ decomposition of the left 3x3 block gives an upper-triangular `K` with a positive
+    diagonal and a rotation `R`; `P`'s arbitrary scale and sign are removed by fixing
+    `K[2, 2] = 1`. The camera centre is the null space of `P`.
+
+    **Arguments:**
+
+    - `projection`: a finite-camera projection matrix (world to homogeneous pixels).
+
+    **Returns:**
+
+    The intrinsic matrix `K` (OpenCV pixel convention, skew kept) and the camera-to-world
+    matrix in the OpenGL convention (x right, y up, looking along -z).
+    """
+    projection = np.asarray(projection, np.float64)
+    block = projection[:, :3]
+    if np.linalg.det(block) < 0:
+        # P and -P project alike; with a positive determinant the rotation is proper.
+        projection, block = -projection, -block
+    # RQ through QR: with the row-reversing permutation J, (J M)^T = Q U gives
+    # M = (J U^T J)(J Q^T), an upper-triangular factor times an orthogonal one.
+    reverse = np.eye(3)[::-1]
+    q, u = np.linalg.qr((reverse @ block).T)
+    intrinsics = reverse @ u.T @ reverse
+    rotation = reverse @ q.T
+    signs = np.diag(np.sign(np.diag(intrinsics)))
+    intrinsics, rotation = intrinsics @ signs, signs @ rotation
+    intrinsics = intrinsics / intrinsics[2, 2]
+    centre = -np.linalg.solve(block, projection[:, 3])
+    opencv_to_opengl = np.diag([1.0, -1.0, -1.0])
+    camtoworld = np.concatenate([rotation.T @ opencv_to_opengl, centre[:, None]], axis=1)
+    return intrinsics, camtoworld

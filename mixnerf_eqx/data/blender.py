@@ -1,0 +1,208 @@
+"""The NeRF synthetic ("Blender") scenes: `nerf_synthetic/<scene>/transforms_{train,test}.json`.
+
+Images are the 800x800 RGBA renders, area-downsampled by 2 to 400x400 as straight RGBA and
+then composited on white (RegNeRF's and MixNeRF's `factor = 2` with a white background).
+A split's images may instead come from a `<split>_400/` folder beside `<split>/` holding the
+same views already downsampled (such as the `test_400/` folder of the project's shared data):
+the loader reads `<split>/` when it holds every image it needs, else `<split>_400/`.
+
+Cameras are the JSON's OpenGL camera-to-world matrices; the focal length follows from
+`camera_angle_x` and the final image width. Sampling bounds are near 2 and far 6.
+
+Two protocols choose the views:
+
+- `"mixnerf"` (MixNeRF, following InfoNeRF): the first `n` frames of `transforms_train.json`
+  for training and all 200 test frames.
+- `"dietnerf"` (DietNeRF): the training frames `[26, 86, 2, 55, 75, 93, 16, 73]` (the first
+  `n` of them) and every 8th test frame (25 views).
+
+Numbers from the two protocols are not comparable.
+"""
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from ._dataset import Dataset, Views
+from ._errors import DatasetError
+from ._files import (
+    area_downsample,
+    check_same_size,
+    composite_on_white,
+    read_images,
+    read_json,
+    to_float,
+)
+from ._splits import subsample_test_ids
+
+__all__ = ["SCENES", "load_blender", "split_ids"]
+
+SCENES = ("chair", "drums", "ficus", "hotdog", "lego", "materials", "mic", "ship")
+NEAR = 2.0
+FAR = 6.0
+DOWNSAMPLE = 2
+DIETNERF_TRAIN_IDS = (26, 86, 2, 55, 75, 93, 16, 73)
+DIETNERF_TEST_EVERY = 8
+_ADVICE = "Point --data-dir (or MIXNERF_DATA_DIR) at the folder that holds nerf_synthetic/."
+
+
+def split_ids(
+    protocol: Literal["mixnerf", "dietnerf"],
+    num_train_frames: int,
+    num_test_frames: int,
+    num_train_views: int,
+    train_file: Path,
+) -> tuple[list[int], list[int]]:
+    """The frame ids of the training and test views that `protocol` uses.
+
+    **Arguments:**
+
+    - `protocol`: `"mixnerf"` or `"dietnerf"` (see the module docstring).
+    - `num_train_frames`, `num_test_frames`: the numbers of frames in the two JSON files.
+    - `num_train_views`: how many training views to use.
+    - `train_file`: the training JSON, named in errors.
+
+    **Returns:**
+
+    The training frame ids and the test frame ids.
+    """
+    if protocol == "mixnerf":
+        if num_train_views > num_train_frames:
+            raise DatasetError(
+                f"{train_file}: {num_train_views} training views asked for, but the file lists only "
+                f"{num_train_frames} frames. Ask for at most {num_train_frames} (data.num_train_views)."
+            )
+        return list(range(num_train_views)), list(range(num_test_frames))
+    if protocol == "dietnerf":
+        if num_train_views > len(DIETNERF_TRAIN_IDS):
+            raise DatasetError(
+                f"{num_train_views} training views asked for, but the DietNeRF protocol defines "
+                f"{len(DIETNERF_TRAIN_IDS)} ({list(DIETNERF_TRAIN_IDS)}). Ask for at most "
+                f"{len(DIETNERF_TRAIN_IDS)} (data.num_train_views), or use data.protocol = \"mixnerf\"."
+            )
+        train = list(DIETNERF_TRAIN_IDS[:num_train_views])
+        if max(train) >= num_train_frames:
+            raise DatasetError(
+                f"{train_file}: the DietNeRF protocol uses frame {max(train)}, but the file lists only "
+                f"{num_train_frames} frames. Use the original transforms_train.json (100 frames)."
+            )
+        return train, list(range(0, num_test_frames, DIETNERF_TEST_EVERY))
+    raise DatasetError(f"unknown Blender protocol {protocol!r}; choose \"mixnerf\" or \"dietnerf\" (data.protocol)")
+
+
+def _frames(meta: Any, path: Path) -> list[dict]:
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise DatasetError(f"{path}: expected an object with a non-empty 'frames' list. {_ADVICE}")
+    if not isinstance(meta.get("camera_angle_x"), (int, float)):
+        raise DatasetError(f"{path}: 'camera_angle_x' (the horizontal field of view) is missing or not a number.")
+    for index, frame in enumerate(meta["frames"]):
+        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+            raise DatasetError(f"{path}: frame {index} has no 'file_path'.")
+        if "transform_matrix" not in frame:
+            raise DatasetError(f"{path}: frame {index} has no 'transform_matrix'.")
+    return meta["frames"]
+
+
+def _pose(frame: dict, index: int, path: Path) -> np.ndarray:
+    try:
+        matrix = np.asarray(frame["transform_matrix"], np.float64)
+    except (TypeError, ValueError):
+        matrix = np.zeros(0)
+    if matrix.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(matrix)):
+        raise DatasetError(
+            f"{path}: frame {index} has a transform_matrix of shape {matrix.shape}; expected a finite "
+            "4x4 camera-to-world matrix. Repair the file or download it again."
+        )
+    return matrix[:3, :4]
+
+
+def _image_path(scene_dir: Path, file_path: str) -> Path:
+    path = scene_dir / file_path
+    return path if path.suffix.lower() == ".png" else path.with_name(path.name + ".png")
+
+
+def _downsampled_path(path: Path) -> Path:
+    # ./test/r_0.png -> ./test_400/r_0.png
+    return path.parent.with_name(f"{path.parent.name}_400") / path.name
+
+
+def _read_split_images(paths: list[Path]) -> tuple[np.ndarray, list[Path]]:
+    """Reads and downsamples the full-size images, or reads the `_400` copies when some
+    full-size image is missing and every copy exists."""
+    small = [_downsampled_path(p) for p in paths]
+    if all(p.is_file() for p in paths) or not all(p.is_file() for p in small):
+        # The full-size images; a missing one raises its own error from here.
+        images = read_images(paths)
+        check_same_size(images, paths)
+        for image, path in zip(images, paths, strict=True):
+            if image.shape[0] % DOWNSAMPLE or image.shape[1] % DOWNSAMPLE:
+                raise DatasetError(
+                    f"{path}: a {image.shape[1]}x{image.shape[0]} image cannot be halved exactly; the "
+                    "Blender protocol downsamples the 800x800 renders by 2."
+                )
+        floats = [composite_on_white(area_downsample(image, DOWNSAMPLE)) for image in images]
+        return np.stack(floats), paths
+    images = read_images(small)
+    check_same_size(images, small)
+    return np.stack([composite_on_white(to_float(image)) for image in images]), small
+
+
+def _load_views(scene_dir: Path, ids: list[int], meta: Any, path: Path) -> Views:
+    frames = _frames(meta, path)
+    paths = [_image_path(scene_dir, frames[i]["file_path"]) for i in ids]
+    poses = np.stack([_pose(frames[i], i, path) for i in ids])
+    images, _ = _read_split_images(paths)
+    width = images.shape[2]
+    focal = 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))
+    return Views(
+        images=np.ascontiguousarray(images, np.float32),
+        camtoworlds=poses.astype(np.float32),
+        focal=float(focal),
+        ids=tuple(ids),
+    )
+
+
+def load_blender(
+    scene_dir: Path,
+    *,
+    num_train_views: int,
+    protocol: Literal["mixnerf", "dietnerf"] = "mixnerf",
+    max_test_views: int = 0,
+) -> Dataset:
+    """Loads one NeRF synthetic scene under the chosen protocol.
+
+    **Arguments:**
+
+    - `scene_dir`: the scene's folder (holding `transforms_train.json`, `transforms_test.json`).
+    - `num_train_views`: the number of training views.
+    - `protocol`: `"mixnerf"` or `"dietnerf"` (see the module docstring).
+    - `max_test_views`: keep only this many of the protocol's test views, evenly spaced
+      (0 keeps them all).
+
+    **Returns:**
+
+    A `Dataset` at 400x400 on a white background, with near 2 and far 6.
+    """
+    train_path = scene_dir / "transforms_train.json"
+    test_path = scene_dir / "transforms_test.json"
+    train_meta = read_json(train_path, "Blender camera file", _ADVICE)
+    test_meta = read_json(test_path, "Blender camera file", _ADVICE)
+    train_ids, test_ids = split_ids(
+        protocol,
+        len(_frames(train_meta, train_path)),
+        len(_frames(test_meta, test_path)),
+        num_train_views,
+        train_path,
+    )
+    test_ids = subsample_test_ids(test_ids, max_test_views)
+    return Dataset(
+        name=scene_dir.name,
+        train=_load_views(scene_dir, train_ids, train_meta, train_path),
+        test=_load_views(scene_dir, test_ids, test_meta, test_path),
+        near=NEAR,
+        far=FAR,
+        white_background=True,
+        frustum="cone",
+    )
