@@ -61,11 +61,53 @@ def time_variant(config, data, repeats: int, typecheck: bool) -> dict:
     }
 
 
+def time_bare_mlp(config, repeats: int) -> dict:
+    """Forward and backward of the field alone over one step's samples: the ceiling.
+
+    The same number of points as a training step evaluates (batch x (coarse + fine)), with
+    random inputs and the sum of every output as the loss, and nothing else: no sampling,
+    compositing, mixture or optimiser.
+    """
+    model = build_model(config, key=jax.random.key(0))
+    points = config.train.batch_size * (config.model.num_coarse_samples + config.model.num_fine_samples)
+    keys = jax.random.split(jax.random.key(2), 3)
+    means = jax.random.normal(keys[0], (points, 3))
+    covs = 1e-4 * jnp.abs(jax.random.normal(keys[1], (points, 3)))
+    viewdirs = jax.random.normal(keys[2], (points, 3))
+    viewdirs = viewdirs / jnp.linalg.norm(viewdirs, axis=-1, keepdims=True)
+
+    @eqx.filter_jit
+    def forward_backward(field, means, covs, viewdirs):
+        def total(field):
+            out = jax.vmap(field)(means, covs, viewdirs)
+            leaves = [x for x in jax.tree_util.tree_leaves(out) if x is not None]
+            return sum(jnp.sum(x) for x in leaves)
+
+        return eqx.filter_grad(total)(field)
+
+    start = time.perf_counter()
+    jax.block_until_ready(forward_backward(model.field, means, covs, viewdirs))
+    compile_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    for _ in range(repeats):
+        grads = forward_backward(model.field, means, covs, viewdirs)
+    jax.block_until_ready(grads)
+    seconds = (time.perf_counter() - start) / repeats
+    return {
+        "first_step_s": compile_seconds,
+        "step_s": seconds,
+        "rays_per_s": config.train.batch_size / seconds,
+        "samples_per_s": points / seconds,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--config", default=None, help="TOML config (default: the paper's settings)")
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--variants", nargs="+", default=["mixnerf", "mipnerf", "mixnerf-nocheck"])
+    parser.add_argument(
+        "--variants", nargs="+", default=["bare-mlp", "mixnerf", "mipnerf", "mixnerf-nocheck"]
+    )
     parser.add_argument("--out", default=None)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
@@ -76,10 +118,13 @@ def main() -> None:
     for variant in args.variants:
         extra = BASELINE if variant.startswith("mipnerf") else []
         variant_config = load_config(args.config, [*args.overrides, *extra])
-        row = {
-            "variant": variant,
-            **time_variant(variant_config, data, args.repeats, typecheck=not variant.endswith("nocheck")),
-        }
+        if variant == "bare-mlp":
+            timing = time_bare_mlp(variant_config, args.repeats)
+        else:
+            timing = time_variant(
+                variant_config, data, args.repeats, typecheck=not variant.endswith("nocheck")
+            )
+        row = {"variant": variant, **timing}
         rows.append(row)
         print(json.dumps(row), flush=True)
     machine = {
@@ -92,9 +137,16 @@ def main() -> None:
     print(f"MLP {m.depth}x{m.width}, remat {m.remat}; {machine['devices']}")
     header = ("variant", "first step s", "step s", "rays/s", "samples/s")
     print(" ".join(f"{h:>16s}" for h in header))
+    bare = next((row["step_s"] for row in rows if row["variant"] == "bare-mlp"), None)
     for row in rows:
         cells = (row["variant"], row["first_step_s"], row["step_s"], row["rays_per_s"], row["samples_per_s"])
         print(" ".join(f"{c:>16.4g}" if isinstance(c, float) else f"{c:>16s}" for c in cells))
+        if bare is not None:
+            row["fraction_of_bare_mlp_throughput"] = bare / row["step_s"]
+    if bare is not None:
+        print("\nthroughput as a fraction of the bare MLP's (target >= 0.80 on the GPU):")
+        for row in rows:
+            print(f"  {row['variant']:>16s} {row['fraction_of_bare_mlp_throughput']:.3f}")
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(

@@ -2,7 +2,6 @@
 
 import dataclasses
 import json
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -12,7 +11,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxtyping
-import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float, Int
 from tqdm.auto import tqdm
@@ -20,13 +18,13 @@ from tqdm.auto import tqdm
 from ._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
 from ._config import Config, ConfigError, build_model, config_to_dict, init_key
 from ._custom_types import PRNGKey
+from ._evaluate import evaluate, render_rays, render_views  # noqa: F401 (render_* re-exported)
 from ._images import colourise_depth, save_png
 from ._loss import LossTerms, loss_fn
 from ._model import MixNeRF
 from ._rays import RayBundle
 from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
-from .data import Dataset, Views, load_dataset, rays_for_views
-from .metrics import depth_error, psnr, ssim
+from .data import Dataset, load_dataset, rays_for_views
 
 
 def make_optimizer(config: Config) -> optax.GradientTransformation:
@@ -146,57 +144,6 @@ def make_train_step(
     if max_traces is not None:
         train_step = eqx.debug.assert_max_traces(train_step, max_traces=max_traces)
     return eqx.filter_jit(train_step)
-
-
-@eqx.filter_jit
-def _render_chunk(model: MixNeRF, rays: RayBundle):
-    outputs = model(rays)
-    return outputs.fine.rgb, outputs.fine.depth, outputs.fine.acc
-
-
-def render_rays(model: MixNeRF, rays: RayBundle, chunk: int = 4096):
-    """Deterministically renders any number of rays in fixed-size chunks (bounded memory).
-
-    **Returns:**
-
-    `(rgb, depth, acc)` as numpy arrays with `rays.batch_shape` in front.
-    """
-    batch_shape = rays.batch_shape
-    flat = rays.reshape(-1)
-    count = flat.origins.shape[0]
-    num_chunks = math.ceil(count / chunk)
-    # Pad to whole chunks so that every call has the same shape and compiles once.
-    padded = jax.tree_util.tree_map(
-        lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], num_chunks * chunk - count, axis=0)]), flat
-    )
-    pieces = [_render_chunk(model, padded[i * chunk : (i + 1) * chunk]) for i in range(num_chunks)]
-    rgb, depth, acc = (np.concatenate([np.asarray(p[i]) for p in pieces])[:count] for i in range(3))
-    return rgb.reshape(*batch_shape, 3), depth.reshape(batch_shape), acc.reshape(batch_shape)
-
-
-def render_views(model: MixNeRF, views: Views, near: float, far: float, chunk: int = 4096):
-    """Renders every view of `views`: `(rgb, depth, acc)` per view, as numpy arrays."""
-    return render_rays(model, rays_for_views(views, near, far), chunk)
-
-
-def evaluate(model: MixNeRF, dataset: Dataset, *, chunk: int = 4096, view_ids: list[int] | None = None):
-    """Renders test views and returns `(mean metrics, per-view metrics, renders)`."""
-    views = dataset.test
-    if view_ids is not None:
-        views = views.select(view_ids)
-    rgb, depth, acc = render_views(model, views, dataset.near, dataset.far, chunk)
-    per_view = []
-    for index in range(views.num_views):
-        entry = {
-            "view": int(views.ids[index]),
-            "psnr": psnr(rgb[index], views.images[index]),
-            "ssim": ssim(rgb[index], views.images[index]),
-        }
-        if views.depths is not None:
-            entry["depth_mae"] = depth_error(depth[index], views.depths[index])
-        per_view.append(entry)
-    means = {name: float(np.mean([v[name] for v in per_view])) for name in per_view[0] if name != "view"}
-    return means, per_view, (rgb, depth, acc)
 
 
 # Train-section keys that do not change the trajectory: a run may resume with them changed.
@@ -350,8 +297,11 @@ def fit(
                     bar.update(done - bar.n)
                 if config.train.eval_every and done % config.train.eval_every == 0 and done < max_steps:
                     ids = list(range(min(config.train.num_eval_views, dataset.test.num_views)))
-                    means, _, _ = evaluate(model, dataset, chunk=config.train.render_chunk, view_ids=ids)
-                    bar.write(f"step {done}: held-out " + ", ".join(f"{k} {v:.4f}" for k, v in means.items()))
+                    means, _ = evaluate(
+                        model, dataset, chunk=config.train.render_chunk, view_ids=ids, with_lpips=False
+                    )
+                    shown = ", ".join(f"{k} {v:.4f}" for k, v in means.items() if v is not None)
+                    bar.write(f"step {done}: held-out {shown}")
                     log_file.write(json.dumps({"step": done, "eval": means}) + "\n")
                 # No checkpoint inside a run of skipped steps: the last good one must stay the
                 # newest, so that a diverging run can be resumed from before the trouble began.
@@ -380,7 +330,13 @@ def fit(
             history=history,
         )
 
-    means, per_view, (rgb, depth, _) = evaluate(model, dataset, chunk=config.train.render_chunk)
+    renders = run_dir / "renders"
+
+    def write_view(index: int, entry: dict[str, Any], outputs) -> None:
+        if write_renders:
+            write_view_renders(renders, dataset, index, entry["view"], outputs)
+
+    means, per_view = evaluate(model, dataset, chunk=config.train.render_chunk, on_view=write_view)
     metrics = {
         "step": step,
         "skipped_steps": skipped_total,
@@ -390,16 +346,15 @@ def fit(
         "config": config_dict,
     }
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    if write_renders:
-        renders = run_dir / "renders"
-        for index, view_id in enumerate(dataset.test.ids):
-            save_png(renders / f"test_{view_id:03d}_rgb.png", rgb[index])
-            save_png(
-                renders / f"test_{view_id:03d}_depth.png",
-                colourise_depth(depth[index], dataset.near, dataset.far),
-            )
-            save_png(renders / f"test_{view_id:03d}_gt.png", dataset.test.images[index])
     return TrainResult(model=model, metrics=metrics, run_dir=run_dir, history=history)
+
+
+def write_view_renders(folder: Path, dataset: Dataset, index: int, view_id: int, outputs) -> None:
+    """Writes one test view's colour, depth and ground-truth PNGs into `folder`."""
+    rgb, depth, _ = outputs
+    save_png(folder / f"test_{view_id:03d}_rgb.png", rgb)
+    save_png(folder / f"test_{view_id:03d}_depth.png", colourise_depth(depth, dataset.near, dataset.far))
+    save_png(folder / f"test_{view_id:03d}_gt.png", dataset.test.images[index])
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:

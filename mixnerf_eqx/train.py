@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         f"({len(result.metrics['per_view'])} held-out views):"
     )
     for name, value in test.items():
-        print(f"  {name:10s} {value:.4f}")
+        print(f"  {name:10s} " + ("n/a (install the lpips extra)" if value is None else f"{value:.4f}"))
     print(f"metrics: {result.run_dir / 'metrics.json'}")
     print(f"renders: {result.run_dir / 'renders'}")
     print(f"checkpoints: {result.run_dir / 'checkpoints'}")

@@ -1,4 +1,5 @@
 import dataclasses
+import re
 from pathlib import Path
 
 import jax
@@ -120,3 +121,32 @@ def test_notebooks_are_valid_python():
         for index, cell in enumerate(notebook["cells"]):
             if cell["cell_type"] == "code":
                 compile("".join(cell["source"]), f"{path}:cell{index}", "exec")
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def test_every_config_is_mapped_in_the_configs_readme(path):
+    readme = Path("configs/README.md").read_text()
+    assert f"`{path.name}`" in readme
+    config = load_config(path)
+    # Each paper cell's published PSNR stands both in the file and in the table.
+    for number in re.findall(r"PSNR (\d+\.\d+)", config.reproduces)[:1]:
+        row = next(line for line in readme.splitlines() if f"`{path.name}`" in line)
+        assert number in row, (path.name, number, row)
+
+
+@pytest.mark.parametrize(
+    ("name", "lambda_depth", "lambda_regen", "max_steps", "lr_init"),
+    [
+        ("llff3.toml", 1e-4, 1e-5, 69768, 2e-3),
+        ("llff9.toml", 1e-6, 1e-7, 209303, 2e-3),
+        ("dtu6.toml", 1e-4, 1e-5, 87891, 2e-3),
+        ("blender8.toml", 1e-4, 1e-5, 156250, 1e-3),
+    ],
+)
+def test_paper_configs_hold_the_published_hyperparameters(name, lambda_depth, lambda_regen, max_steps, lr_init):
+    config = load_config(Path("configs") / name)
+    assert config.loss.lambda_depth == lambda_depth
+    assert config.loss.lambda_regen == lambda_regen
+    assert config.train.max_steps == max_steps
+    assert config.optim.lr_init == lr_init
+    assert (config.model.width, config.model.num_coarse_samples, config.train.batch_size) == (256, 128, 4096)

@@ -1,0 +1,159 @@
+"""Rendering images in bounded memory, and scoring them against held-out views."""
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._model import MixNeRF
+from ._rays import RayBundle
+from .data import Dataset, Views, rays_for_views
+from .metrics import (
+    average_error,
+    composite_outside_mask,
+    depth_error,
+    lpips,
+    lpips_available,
+    masked_psnr,
+    psnr,
+    ssim,
+)
+
+
+@eqx.filter_jit
+def _render_chunk(model: MixNeRF, rays: RayBundle):
+    outputs = model(rays)
+    return outputs.fine.rgb, outputs.fine.depth, outputs.fine.acc
+
+
+def render_rays(model: MixNeRF, rays: RayBundle, chunk: int = 4096):
+    """Deterministically renders any number of rays, `chunk` rays at a time.
+
+    Every call of the compiled renderer sees exactly `chunk` rays (the last chunk is padded),
+    so it compiles once, and device memory is bounded by the chunk, not by the image.
+
+    **Returns:**
+
+    `(rgb, depth, acc)` as numpy arrays with `rays.batch_shape` in front.
+    """
+    batch_shape = rays.batch_shape
+    flat = rays.reshape(-1)
+    count = flat.origins.shape[0]
+    rgb = np.empty((count, 3), np.float32)
+    depth = np.empty((count,), np.float32)
+    acc = np.empty((count,), np.float32)
+    for start in range(0, count, chunk):
+        stop = min(start + chunk, count)
+        piece = flat[start:stop]
+        if stop - start < chunk:
+            pad = chunk - (stop - start)
+            piece = jax.tree_util.tree_map(
+                lambda x, pad=pad: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), piece
+            )
+        out_rgb, out_depth, out_acc = _render_chunk(model, piece)
+        rgb[start:stop] = np.asarray(out_rgb)[: stop - start]
+        depth[start:stop] = np.asarray(out_depth)[: stop - start]
+        acc[start:stop] = np.asarray(out_acc)[: stop - start]
+    return rgb.reshape(*batch_shape, 3), depth.reshape(batch_shape), acc.reshape(batch_shape)
+
+
+def render_views(model: MixNeRF, views: Views, near: float, far: float, chunk: int = 4096):
+    """Renders every view of `views`; the rays of one view at a time exist on the host.
+
+    **Returns:**
+
+    `(rgb, depth, acc)` stacked over the views, as numpy arrays.
+    """
+    rgb = np.empty((views.num_views, views.height, views.width, 3), np.float32)
+    depth = np.empty((views.num_views, views.height, views.width), np.float32)
+    acc = np.empty_like(depth)
+    for index in range(views.num_views):
+        rays = rays_for_views(views.select([index]), near, far)
+        view_rgb, view_depth, view_acc = render_rays(model, rays, chunk)
+        rgb[index], depth[index], acc[index] = view_rgb[0], view_depth[0], view_acc[0]
+    return rgb, depth, acc
+
+
+def image_metrics(
+    prediction: np.ndarray,
+    target: np.ndarray,
+    *,
+    mask: np.ndarray | None = None,
+    with_lpips: bool = True,
+) -> dict[str, float | None]:
+    """PSNR, SSIM, LPIPS and the "average" error of one rendered image.
+
+    With an object `mask` (DTU), PSNR uses the masked pixels only and SSIM and LPIPS see both
+    images composited on white outside the mask, as in RegNeRF's and MixNeRF's evaluation.
+    LPIPS (and so the average) is `None` when its weights are not installed or when
+    `with_lpips` is false: it is reported as unavailable, never as a stand-in number.
+    """
+    if mask is None:
+        scores = {"psnr": psnr(prediction, target)}
+        structural_pred, structural_target = prediction, target
+    else:
+        scores = {"psnr": masked_psnr(prediction, target, mask)}
+        structural_pred = composite_outside_mask(prediction, mask)
+        structural_target = composite_outside_mask(target, mask)
+    scores["ssim"] = ssim(structural_pred, structural_target)
+    if with_lpips and lpips_available():
+        scores["lpips"] = lpips(structural_pred, structural_target)
+        scores["average"] = average_error(scores["psnr"], scores["ssim"], scores["lpips"])
+    else:
+        scores["lpips"] = None
+        scores["average"] = None
+    return scores
+
+
+def mean_metrics(per_view: Sequence[dict[str, Any]]) -> dict[str, float | None]:
+    """The mean of every metric over the views (`None` where a metric is unavailable)."""
+    names = [name for name in per_view[0] if name != "view"]
+    means: dict[str, float | None] = {}
+    for name in names:
+        values = [view[name] for view in per_view]
+        means[name] = None if any(v is None for v in values) else float(np.mean(values))
+    return means
+
+
+def evaluate(
+    model: MixNeRF,
+    dataset: Dataset,
+    *,
+    chunk: int = 4096,
+    view_ids: Sequence[int] | None = None,
+    with_lpips: bool = True,
+    on_view: Callable[[int, dict[str, Any], tuple[np.ndarray, np.ndarray, np.ndarray]], None] | None = None,
+):
+    """Renders the test views one at a time and scores each.
+
+    **Arguments:**
+
+    - `model`: the trained model.
+    - `dataset`: the scene; its `test` views are rendered.
+    - `chunk`: rays rendered at once.
+    - `view_ids`: positions of the test views to use (default: all).
+    - `with_lpips`: compute LPIPS where its weights are installed.
+    - `on_view`: called as `on_view(position, metrics, (rgb, depth, acc))` after each view,
+      e.g. to write its PNGs, so that nothing but the metrics has to be kept.
+
+    **Returns:**
+
+    `(mean metrics, per-view metrics)`.
+    """
+    views = dataset.test if view_ids is None else dataset.test.select(view_ids)
+    per_view = []
+    for index in range(views.num_views):
+        one = views.select([index])
+        rgb, depth, acc = render_views(model, one, dataset.near, dataset.far, chunk)
+        mask = None if one.masks is None else one.masks[0]
+        entry: dict[str, Any] = {"view": int(one.ids[0])}
+        entry.update(image_metrics(rgb[0], one.images[0], mask=mask, with_lpips=with_lpips))
+        if one.depths is not None:
+            entry["depth_mae"] = depth_error(depth[0], one.depths[0])
+        per_view.append(entry)
+        if on_view is not None:
+            on_view(index, entry, (rgb[0], depth[0], acc[0]))
+    return mean_metrics(per_view), per_view

@@ -1,0 +1,165 @@
+"""Evaluate a run: `python -m mixnerf_eqx.eval RUN_DIR [--checkpoint DIR] [--data-dir DIR] [...]`.
+
+Loads the run's config and its latest (or the given) checkpoint, renders the test views one at
+a time in chunks of rays (memory stays bounded whatever the resolution), writes per-image and
+mean metrics to `RUN_DIR/eval/metrics.json` with colour and depth PNGs beside it, and prints a
+table. LPIPS needs the optional `lpips` extra; without it LPIPS is reported as unavailable.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+METRIC_COLUMNS = ("psnr", "ssim", "lpips", "average", "depth_mae")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.eval", description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "run_dir", type=Path, help="a training run's folder (holds config.json, checkpoints/)"
+    )
+    parser.add_argument("--checkpoint", type=Path, default=None, help="checkpoint folder (default: latest)")
+    parser.add_argument(
+        "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
+    )
+    parser.add_argument("--chunk", type=int, default=None, help="rays rendered at once (default: the run's)")
+    parser.add_argument(
+        "--max-views", type=int, default=0, help="evaluate this many test views, evenly spaced"
+    )
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/eval)")
+    parser.add_argument("--no-renders", action="store_true", help="write no PNGs")
+    parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
+    parser.add_argument("--no-typecheck", action="store_true", help="turn off runtime shape checks")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return parser.parse_args(argv)
+
+
+def format_table(per_view: list[dict], means: dict) -> str:
+    """A plain-text table of the per-view metrics and their means."""
+    columns = [name for name in METRIC_COLUMNS if name in means]
+
+    def cell(value) -> str:
+        return "n/a" if value is None else f"{value:.4f}"
+
+    header = f"{'view':>8} " + " ".join(f"{name:>10}" for name in columns)
+    lines = [header, "-" * len(header)]
+    lines += [
+        f"{entry['view']:>8} " + " ".join(f"{cell(entry[n]):>10}" for n in columns) for entry in per_view
+    ]
+    lines += ["-" * len(header), f"{'mean':>8} " + " ".join(f"{cell(means[n]):>10}" for n in columns)]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Evaluates as `args` say and returns what was written to `metrics.json`."""
+    import dataclasses
+
+    import equinox as eqx
+    import jax
+    from tqdm.auto import tqdm
+
+    from mixnerf_eqx import ConfigError, build_model
+    from mixnerf_eqx._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta
+    from mixnerf_eqx._config import config_from_dict, init_key
+    from mixnerf_eqx._evaluate import evaluate
+    from mixnerf_eqx._train import make_optimizer, write_view_renders
+    from mixnerf_eqx.data import load_dataset
+    from mixnerf_eqx.data._splits import evenly_spaced
+    from mixnerf_eqx.metrics import lpips_available
+
+    run_dir = args.run_dir
+    if not (run_dir / "config.json").is_file():
+        raise ConfigError(f"{run_dir} is not a training run: it has no config.json. Pass a run folder.")
+    checkpoint = args.checkpoint or latest_checkpoint(run_dir)
+    if checkpoint is None:
+        raise ConfigError(f"{run_dir} holds no checkpoint yet; train first (python -m mixnerf_eqx.train).")
+    if not (Path(checkpoint) / "state.eqx").is_file():
+        raise ConfigError(f"{checkpoint} is not a checkpoint folder (no state.eqx).")
+    try:
+        config_dict = json.loads((run_dir / "config.json").read_text())
+    except json.JSONDecodeError as error:
+        raise ConfigError(f"{run_dir / 'config.json'}: not valid JSON ({error})") from None
+    config = config_from_dict(config_dict, str(run_dir / "config.json"))
+    if args.data_dir is not None:
+        config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=args.data_dir))
+    chunk = args.chunk or config.train.render_chunk
+
+    dataset = load_dataset(config.data)
+    model_key, train_key = jax.random.split(init_key(config))
+    model = build_model(
+        config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background
+    )
+    opt_state = make_optimizer(config).init(eqx.filter(model, eqx.is_array))
+    model, _, step, _ = load_checkpoint(checkpoint, model=model, opt_state=opt_state, key=train_key)
+    step = read_checkpoint_meta(checkpoint).get("step", step)
+
+    view_ids = None
+    if args.max_views > 0:
+        view_ids = evenly_spaced(dataset.test.num_views, min(args.max_views, dataset.test.num_views))
+    num_views = dataset.test.num_views if view_ids is None else len(view_ids)
+    out = args.out or run_dir / "eval"
+    out.mkdir(parents=True, exist_ok=True)
+    views = dataset.test if view_ids is None else dataset.test.select(view_ids)
+    subset = dataclasses.replace(dataset, test=views)
+    bar = tqdm(total=num_views, disable=args.no_progress, unit="view", dynamic_ncols=True)
+
+    def after_view(index: int, entry: dict, outputs) -> None:
+        if not args.no_renders:
+            write_view_renders(out, subset, index, entry["view"], outputs)
+        bar.set_postfix(psnr=f"{entry['psnr']:.2f}")
+        bar.update(1)
+
+    started = time.perf_counter()
+    try:
+        means, per_view = evaluate(
+            model, subset, chunk=chunk, with_lpips=not args.no_lpips, on_view=after_view
+        )
+    finally:
+        bar.close()
+    seconds = time.perf_counter() - started
+    lpips_note = "computed"
+    if args.no_lpips:
+        lpips_note = "skipped (--no-lpips)"
+    elif not lpips_available():
+        lpips_note = "unavailable: install the lpips extra (pip install -e '.[lpips]')"
+    result = {
+        "run_dir": str(run_dir),
+        "checkpoint": str(checkpoint),
+        "step": step,
+        "scene": dataset.name,
+        "num_views": num_views,
+        "lpips": lpips_note,
+        "seconds": seconds,
+        "mean": means,
+        "per_view": per_view,
+    }
+    (out / "metrics.json").write_text(json.dumps(result, indent=2))
+    print(format_table(per_view, means))
+    print(f"\n{dataset.name}, step {step}, {num_views} views in {seconds:.1f} s; LPIPS {lpips_note}")
+    print(f"metrics: {out / 'metrics.json'}")
+    if not args.no_renders:
+        print(f"renders: {out}")
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.no_typecheck:
+        os.environ["MIXNERF_EQX_TYPECHECK"] = "0"
+    from mixnerf_eqx import ConfigError
+
+    try:
+        run(args)
+    except (ConfigError, ValueError, FileNotFoundError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

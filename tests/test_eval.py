@@ -1,0 +1,95 @@
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mixnerf_eqx._evaluate import evaluate, render_rays, render_views
+from mixnerf_eqx._train import fit
+from mixnerf_eqx.data import rays_for_views
+from mixnerf_eqx.eval import main as eval_main
+from mixnerf_eqx.metrics import lpips_available
+
+
+def _with_train(config, **changes):
+    return dataclasses.replace(config, train=dataclasses.replace(config.train, **changes))
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, tiny_scene):
+    from conftest import TINY_OVERRIDES
+
+    from mixnerf_eqx import load_config
+
+    config = load_config("configs/builtin.toml", TINY_OVERRIDES)
+    run_dir = tmp_path_factory.mktemp("eval") / "run"
+    config = _with_train(config, max_steps=30, run_dir=str(run_dir))
+    return fit(config, dataset=tiny_scene, progress=False, write_renders=False)
+
+
+def test_chunked_rendering_does_not_depend_on_the_chunk(trained, tiny_scene):
+    views = tiny_scene.test.select([0])
+    rays = rays_for_views(views, tiny_scene.near, tiny_scene.far)
+    # 1024 rays: one whole chunk, or 7 chunks of 150 with the last one padded.
+    whole = render_rays(trained.model, rays, chunk=1024)
+    pieces = render_rays(trained.model, rays, chunk=150)
+    for a, b in zip(whole, pieces, strict=True):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, atol=1e-5)
+    per_view = render_views(trained.model, views, tiny_scene.near, tiny_scene.far, chunk=150)
+    np.testing.assert_allclose(per_view[0], whole[0], atol=1e-5)
+
+
+def test_eval_command_reproduces_the_training_metrics(trained, tiny_scene, capsys):
+    code = eval_main([str(trained.run_dir), "--no-progress", "--no-typecheck"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    written = json.loads((trained.run_dir / "eval" / "metrics.json").read_text())
+    assert written["num_views"] == tiny_scene.test.num_views
+    assert [v["view"] for v in written["per_view"]] == list(tiny_scene.test.ids)
+    # The same checkpoint, rendered again, scores what training reported at its end.
+    for name in ("psnr", "ssim", "depth_mae"):
+        assert written["mean"][name] == pytest.approx(trained.metrics["test"][name], abs=1e-6)
+    if lpips_available():
+        assert 0 <= written["mean"]["lpips"] <= 1
+        assert written["mean"]["average"] > 0
+    else:
+        assert written["mean"]["lpips"] is None and "unavailable" in written["lpips"]
+    assert "mean" in printed and f"{written['mean']['psnr']:.4f}" in printed
+    pngs = sorted(p.name for p in (trained.run_dir / "eval").glob("*.png"))
+    assert len(pngs) == 3 * tiny_scene.test.num_views
+    assert any(name.endswith("_depth.png") for name in pngs)
+
+
+def test_eval_of_a_subset_and_without_lpips(trained, tiny_scene, tmp_path):
+    out = tmp_path / "subset"
+    code = eval_main(
+        [str(trained.run_dir), "--max-views", "2", "--no-lpips", "--no-renders", "--out", str(out)]
+    )
+    assert code == 0
+    written = json.loads((out / "metrics.json").read_text())
+    assert written["num_views"] == 2
+    assert written["mean"]["lpips"] is None and written["lpips"].startswith("skipped")
+    assert not list(out.glob("*.png"))
+
+
+def test_evaluate_means_are_means_of_the_views(trained, tiny_scene):
+    means, per_view = evaluate(trained.model, tiny_scene, chunk=512, with_lpips=False)
+    assert means["psnr"] == pytest.approx(np.mean([v["psnr"] for v in per_view]))
+    assert means["lpips"] is None
+
+
+@pytest.mark.parametrize("argument", ["does_not_exist", "."])
+def test_eval_of_a_folder_that_is_no_run_is_one_clear_error(argument, tmp_path):
+    target = tmp_path / argument
+    process = subprocess.run(
+        [sys.executable, "-m", "mixnerf_eqx.eval", str(target), "--no-progress"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert process.returncode == 2
+    assert process.stderr.startswith("error:") and "config.json" in process.stderr
+    assert "Traceback" not in process.stderr
