@@ -129,6 +129,13 @@ def load_dataset(config: DataConfig) -> Dataset:
         )
     if config.dataset not in DATASETS:
         raise DatasetError(f"unknown dataset format {config.dataset!r}; choose one of {', '.join(DATASETS)}.")
+    # Checked here, not left to blender.split_ids: with type checking on, an unknown protocol
+    # would fail load_blender's Literal annotation with a TypeCheckError instead.
+    if config.protocol not in ("mixnerf", "dietnerf"):
+        raise DatasetError(
+            f"unknown Blender protocol {config.protocol!r}; "
+            'choose "mixnerf" or "dietnerf" (data.protocol)'
+        )
     if config.protocol != "mixnerf" and config.dataset != "blender":
         raise DatasetError(
             f"data.protocol = {config.protocol!r} is a Blender protocol; the {config.dataset} scenes have one "

@@ -68,7 +68,9 @@ def protocol_ids(num_train_views: int) -> tuple[list[int], list[int]]:
 def _read_cameras(path: Path, count: int) -> list[np.ndarray]:
     require_file(path, "DTU camera file", _ADVICE)
     try:
-        with np.load(path, allow_pickle=False) as cameras:
+        # Opened here, not by np.load: np.load leaks its file handle when the archive is
+        # damaged (a ResourceWarning on top of the DatasetError).
+        with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as cameras:
             keys = set(cameras.files)
             matrices = []
             for view in range(count):

@@ -94,7 +94,10 @@ def load_llff(scene_dir: Path, *, num_train_views: int, max_test_views: int = 0)
     camtoworlds, _, (full_height, full_width, full_focal) = llff_poses(
         read_npy(poses_path, "LLFF camera file", _ADVICE), poses_path
     )
-    files = list_images(image_dir)
+    # Plain name order (not numbers by value): LLFF's imgs2poses stores the poses in the
+    # np.argsort order of the image names, and the NeRF loader pairs them with
+    # sorted(os.listdir(...)); with unpadded names (img9, img10) the orders differ.
+    files = sorted(list_images(image_dir), key=lambda p: p.name)
     if len(files) != len(camtoworlds):
         raise DatasetError(
             f"{image_dir}: holds {len(files)} images but {poses_path.name} has {len(camtoworlds)} poses; "
