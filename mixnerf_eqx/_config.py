@@ -57,6 +57,7 @@ class ModelConfig:
     lindisp: bool = False  # space coarse samples linearly in disparity
     frustum: Literal["auto", "cone", "cylinder"] = "auto"  # "auto": what the dataset says
     remat: bool = False  # recompute MLP activations in the backward pass (less memory, ~1/3 more compute)
+    matmul_dtype: Literal["float32", "bfloat16"] = "float32"  # dtype of the field's matrix products
 
 
 @dataclasses.dataclass(frozen=True)
@@ -316,6 +317,7 @@ def build_model(
         density_bias=model_cfg.density_bias,
         rgb_padding=model_cfg.rgb_padding,
         mixture_heads=not baseline,
+        matmul_dtype=model_cfg.matmul_dtype,
         key=key,
     )
     mixture = None

@@ -5,6 +5,7 @@ All functions take the samples of one ray; `jax.vmap` lifts them to a batch.
 
 from typing import Literal
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -48,13 +49,22 @@ def conical_frustum_moments(
     The stable form of mip-NeRF (eq. 7 of its paper) in terms of the interval's midpoint
     `mu` and half-width `hw`.
     """
-    mu = 0.5 * (t0 + t1)
-    hw = 0.5 * (t1 - t0)
-    # 3 mu^2 + hw^2 > 0 whenever the frustum has any extent; the floor only guards t0 = t1 = 0.
-    denom = jnp.maximum(3 * mu**2 + hw**2, jnp.finfo(mu.dtype).tiny)
-    t_mean = mu + (2 * mu * hw**2) / denom
-    t_var = hw**2 / 3 - (4 / 15) * (hw**4 * (12 * mu**2 - hw**2)) / denom**2
-    r_var = base_radius**2 * (mu**2 / 4 + (5 / 12) * hw**2 - (4 / 15) * hw**4 / denom)
+    # The moments are homogeneous in t (degree 1 for the mean, 2 for the variances), so they
+    # are evaluated in units of the larger |edge|, held constant for the gradient (which is
+    # then still exact). Unscaled, `hw^4` and `denom^2` overflow float32 for intervals longer
+    # than ~1e9 (inf / inf = NaN), and `t0 = t1 = 0` gave `0 * tiny^-2 = NaN` gradients.
+    # Scaled, `3 mu^2 + hw^2 >= 3/4`, so no division is ever by a small number.
+    scale = jax.lax.stop_gradient(jnp.maximum(jnp.abs(t0), jnp.abs(t1)))
+    has_extent = scale > 0
+    scale = jnp.where(has_extent, scale, 1.0)
+    mu = 0.5 * (t0 + t1) / scale
+    hw = 0.5 * (t1 - t0) / scale
+    # At t0 = t1 = 0 every moment is 0 (mu = hw = 0); only the 0 / 0 needs a safe denominator.
+    denom = jnp.where(has_extent, 3 * mu**2 + hw**2, 1.0)
+    hw_sq_ratio = hw**2 / denom
+    t_mean = scale * (mu + 2 * mu * hw_sq_ratio)
+    t_var = scale**2 * (hw**2 / 3 - (4 / 15) * hw**2 * hw_sq_ratio * (12 * mu**2 - hw**2) / denom)
+    r_var = base_radius**2 * scale**2 * (mu**2 / 4 + (5 / 12) * hw**2 - (4 / 15) * hw**2 * hw_sq_ratio)
     return t_mean, t_var, r_var
 
 

@@ -3,6 +3,7 @@
 Everything here is a function of arrays: Modules hold parameters and call these.
 """
 
+import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
@@ -52,9 +53,17 @@ def expected_depth(weights: PerSample, t_edges: Edges) -> Float[Array, ""]:
     opacity reports its far bound.
     """
     t_mids = 0.5 * (t_edges[1:] + t_edges[:-1])
-    total = jnp.sum(weights)
-    safe_total = jnp.where(total > 0, total, 1.0)
-    depth = jnp.where(total > 0, jnp.sum(weights * t_mids) / safe_total, t_edges[-1])
+    # The weighted mean is invariant to the weights' scale, so divide them by their largest
+    # (held constant for the gradient) first. Dividing by a tiny opacity directly gives the
+    # NaN `-x * total^-2 = -x * inf` in the backward pass for opacities below ~1e-19 in
+    # float32. A ray whose largest weight is below the smallest normal float (whose true
+    # gradient is then not representable) counts as empty.
+    largest = jax.lax.stop_gradient(jnp.max(weights))
+    non_empty = largest >= jnp.finfo(weights.dtype).tiny
+    scaled = weights / jnp.where(non_empty, largest, 1.0)
+    total = jnp.sum(scaled)
+    safe_total = jnp.where(non_empty, total, 1.0)
+    depth = jnp.where(non_empty, jnp.sum(scaled * t_mids) / safe_total, t_edges[-1])
     return jnp.clip(depth, t_edges[0], t_edges[-1])
 
 

@@ -1,6 +1,9 @@
+from typing import Literal
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .._custom_types import PRNGKey, Vec3
 from .._encoding import integrated_positional_encoding, positional_encoding
@@ -12,6 +15,24 @@ def _dense(in_size: int, out_size: int, *, key: PRNGKey) -> eqx.nn.Linear:
     layer = eqx.nn.Linear(in_size, out_size, key=key)
     weight = jax.nn.initializers.glorot_uniform()(key, (out_size, in_size))
     return eqx.tree_at(lambda lin: (lin.weight, lin.bias), layer, (weight, jnp.zeros(out_size)))
+
+
+def _apply_dense(
+    layer: eqx.nn.Linear, x: Float[Array, "in_features"], matmul_dtype: Literal["float32", "bfloat16"]
+) -> Float[Array, "out_features"]:
+    """`layer(x)`, with the product optionally in bfloat16 and the result always float32.
+
+    In bfloat16 the inputs and the kernel are rounded to bfloat16 and the product accumulates
+    in float32 (`preferred_element_type`), so the tensor cores do the work while the bias,
+    the activations after it and everything downstream (compositing, losses) stay float32.
+    The parameters themselves stay float32, so the optimiser updates are not rounded.
+    """
+    if matmul_dtype == "float32":
+        return layer(x)
+    product = jnp.matmul(
+        layer.weight.astype(jnp.bfloat16), x.astype(jnp.bfloat16), preferred_element_type=jnp.float32
+    )
+    return product + layer.bias
 
 
 class MipNeRFField(AbstractField):
@@ -31,6 +52,8 @@ class MipNeRFField(AbstractField):
     - `density_noise`: std of the noise added to the raw density in training.
     - `density_bias`: shift of the raw density before the softplus (mip-NeRF: -1).
     - `rgb_padding`: colour range padding, `sigmoid * (1 + 2 p) - p`.
+    - `matmul_dtype`: `"bfloat16"` runs every dense layer's product in bfloat16 with float32
+      accumulation; the encodings, biases, activations and heads' outputs stay float32.
     """
 
     trunk: tuple[eqx.nn.Linear, ...]
@@ -47,6 +70,7 @@ class MipNeRFField(AbstractField):
     density_noise: float = eqx.field(static=True)
     density_bias: float = eqx.field(static=True)
     rgb_padding: float = eqx.field(static=True)
+    matmul_dtype: Literal["float32", "bfloat16"] = eqx.field(static=True)
 
     def __init__(
         self,
@@ -62,12 +86,15 @@ class MipNeRFField(AbstractField):
         density_bias: float = -1.0,
         rgb_padding: float = 0.001,
         mixture_heads: bool = True,
+        matmul_dtype: Literal["float32", "bfloat16"] = "float32",
         key: PRNGKey,
     ):
         if depth < 1 or width < 1 or view_width < 1:
             raise ValueError("depth, width and view_width must be positive")
         if not 0 <= min_deg < max_deg:
             raise ValueError(f"need 0 <= min_deg < max_deg, got {min_deg}, {max_deg}")
+        if matmul_dtype not in ("float32", "bfloat16"):
+            raise ValueError(f"matmul_dtype must be 'float32' or 'bfloat16', got {matmul_dtype!r}")
         input_size = 2 * 3 * (max_deg - min_deg)
         view_size = 3 + 2 * 3 * viewdir_max_deg
         keys = iter(jax.random.split(key, depth + 6))
@@ -91,6 +118,10 @@ class MipNeRFField(AbstractField):
         self.density_noise = density_noise
         self.density_bias = density_bias
         self.rgb_padding = rgb_padding
+        self.matmul_dtype = matmul_dtype
+
+    def _dense(self, layer: eqx.nn.Linear, x: Float[Array, "in_features"]) -> Float[Array, "out_features"]:
+        return _apply_dense(layer, x, self.matmul_dtype)
 
     @staticmethod
     def _skips_after(layer_index: int, skip_layer: int) -> bool:
@@ -104,23 +135,24 @@ class MipNeRFField(AbstractField):
         inputs = integrated_positional_encoding(mean, cov, self.min_deg, self.max_deg)
         hidden = inputs
         for layer_index, layer in enumerate(self.trunk):
-            hidden = jax.nn.relu(layer(hidden))
+            hidden = jax.nn.relu(self._dense(layer, hidden))
             if self._skips_after(layer_index, self.skip_layer):
                 hidden = jnp.concatenate([hidden, inputs])
-        raw_density = self.density_head(hidden)[0] + self.density_bias
+        raw_density = self._dense(self.density_head, hidden)[0] + self.density_bias
         if key is not None and self.density_noise > 0:
             raw_density = raw_density + self.density_noise * jax.random.normal(key, (), raw_density.dtype)
         density = jax.nn.softplus(raw_density)
 
         view_features = positional_encoding(viewdir, 0, self.viewdir_max_deg, append_identity=True)
-        hidden = jnp.concatenate([self.bottleneck(hidden), view_features])
-        hidden = jax.nn.relu(self.view_layer(hidden))
-        rgb = jax.nn.sigmoid(self.rgb_head(hidden)) * (1 + 2 * self.rgb_padding) - self.rgb_padding
+        hidden = jnp.concatenate([self._dense(self.bottleneck, hidden), view_features])
+        hidden = jax.nn.relu(self._dense(self.view_layer, hidden))
+        raw_rgb = self._dense(self.rgb_head, hidden)
+        rgb = jax.nn.sigmoid(raw_rgb) * (1 + 2 * self.rgb_padding) - self.rgb_padding
 
         beta = ray_depth = None
         if self.beta_head is not None and self.depth_head is not None:
-            beta = jax.nn.softplus(self.beta_head(hidden))
-            depth_vector = self.depth_head(hidden)
+            beta = jax.nn.softplus(self._dense(self.beta_head, hidden))
+            depth_vector = self._dense(self.depth_head, hidden)
             # The norm of a 3-vector, with a gradient that stays finite at zero.
             squared = jnp.sum(depth_vector**2)
             safe = jnp.where(squared > 0, squared, 1.0)

@@ -41,7 +41,12 @@ def sample_piecewise_constant(
     lower = upper - 1
     cdf_lo, cdf_hi = cdf[lower], cdf[upper]
     span = cdf_hi - cdf_lo
-    fraction = jnp.where(span > 0, (u - cdf_lo) / jnp.where(span > 0, span, 1.0), 0.0)
+    # A bin whose probability is below sqrt(tiny) (~1e-19 in float32) counts as empty: the
+    # derivative of `(u - cdf_lo) / span` holds `span^-2`, which overflows for such bins and
+    # turns into `0 * inf = NaN` in the weights' gradient. Its draws land on its left edge,
+    # which moves the sample's CDF value by less than the bin's own probability.
+    has_mass = span > jnp.sqrt(jnp.finfo(span.dtype).tiny)
+    fraction = jnp.where(has_mass, (u - cdf_lo) / jnp.where(has_mass, span, 1.0), 0.0)
     fraction = jnp.clip(fraction, 0.0, 1.0)
     return bins[lower] + fraction * (bins[upper] - bins[lower])
 
