@@ -20,7 +20,6 @@ from pathlib import Path
 import jax
 
 from mixnerf_eqx import load_config
-from mixnerf_eqx._evaluate import evaluate
 from mixnerf_eqx._train import fit
 from mixnerf_eqx.data import load_dataset
 
@@ -73,7 +72,7 @@ def main() -> None:
             started = time.perf_counter()
             result = fit(config, dataset=dataset, progress=False, write_renders=True)
             train_seconds = time.perf_counter() - started
-            means, _ = evaluate(result.model, dataset, chunk=config.train.render_chunk)
+            means = result.metrics["test"]  # fit ends by scoring the test views
             row = {
                 "scene": scene,
                 "model": model,

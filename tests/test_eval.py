@@ -93,3 +93,25 @@ def test_eval_of_a_folder_that_is_no_run_is_one_clear_error(argument, tmp_path):
     assert process.returncode == 2
     assert process.stderr.startswith("error:") and "config.json" in process.stderr
     assert "Traceback" not in process.stderr
+
+
+def test_masked_scores_follow_the_dtu_protocol():
+    from mixnerf_eqx._evaluate import image_metrics
+    from mixnerf_eqx.metrics import ssim
+
+    rng = np.random.default_rng(0)
+    target = rng.uniform(size=(40, 36, 3)).astype(np.float32)
+    prediction = np.clip(target + rng.normal(0, 0.1, target.shape), 0, 1).astype(np.float32)
+    mask = np.zeros((40, 36), bool)
+    mask[8:30, 5:25] = True
+    # Outside the mask the prediction is wildly wrong: a masked score must not see it.
+    prediction[~mask] = 1.0 - target[~mask]
+    scores = image_metrics(prediction, target, mask=mask, with_lpips=False)
+    inside = (prediction[mask].astype(np.float64) - target[mask]) ** 2
+    assert scores["psnr"] == pytest.approx(-10 * np.log10(inside.mean()), rel=1e-9)
+    white_pred, white_target = prediction.copy(), target.copy()
+    white_pred[~mask] = 1.0
+    white_target[~mask] = 1.0
+    assert scores["ssim"] == pytest.approx(ssim(white_pred, white_target), rel=1e-12)
+    unmasked = image_metrics(prediction, target, with_lpips=False)
+    assert unmasked["psnr"] < scores["psnr"] - 3
