@@ -143,7 +143,9 @@ def test_every_config_is_mapped_in_the_configs_readme(path):
         ("blender8.toml", 1e-4, 1e-5, 156250, 1e-3),
     ],
 )
-def test_paper_configs_hold_the_published_hyperparameters(name, lambda_depth, lambda_regen, max_steps, lr_init):
+def test_paper_configs_hold_the_published_hyperparameters(
+    name, lambda_depth, lambda_regen, max_steps, lr_init
+):
     config = load_config(Path("configs") / name)
     assert config.loss.lambda_depth == lambda_depth
     assert config.loss.lambda_regen == lambda_regen

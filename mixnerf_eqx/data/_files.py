@@ -151,10 +151,11 @@ def area_downsample(
     return sums.astype(np.float32) / np.float32(255 * factor * factor)
 
 
-def composite_on_white(image: Float[np.ndarray, "height width channels"]) -> Float[np.ndarray, "height width 3"]:
+def composite_on_white(
+    image: Float[np.ndarray, "height width channels"],
+) -> Float[np.ndarray, "height width 3"]:
     """RGB of a straight-alpha RGBA image composited on white (RGB images pass through)."""
     if image.shape[-1] == 3:
         return image
     rgb, alpha = image[..., :3], image[..., 3:]
     return rgb * alpha + (1.0 - alpha)
-

@@ -3,6 +3,8 @@
 import numpy as np
 from jaxtyping import Float
 
+from ._errors import DatasetError
+
 
 def _normalise(vector: np.ndarray) -> np.ndarray:
     return vector / np.linalg.norm(vector)
@@ -18,6 +20,23 @@ def average_pose(camtoworlds: Float[np.ndarray, "num_views 3 4"]) -> Float[np.nd
     right = _normalise(np.cross(up, backward))
     up = _normalise(np.cross(backward, right))
     return np.stack([right, up, backward, centre], axis=1)
+
+
+def parse_transform_matrix(value: object, what: str) -> Float[np.ndarray, "3 4"]:
+    """A JSON `transform_matrix` (4x4 or 3x4 camera-to-world) as a float64 3x4 matrix.
+
+    Anything else is a `DatasetError` whose message starts with `what` (the file and frame).
+    """
+    try:
+        matrix = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        matrix = np.zeros(0)
+    if matrix.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(matrix)):
+        raise DatasetError(
+            f"{what} has shape {matrix.shape}; expected a finite 4x4 camera-to-world matrix. "
+            "Repair the file or export it again."
+        )
+    return matrix[:3, :4]
 
 
 def _homogeneous(poses: np.ndarray) -> np.ndarray:

@@ -117,8 +117,8 @@ def load_dataset(config: DataConfig) -> Dataset:
     if config.dataset == "builtin":
         if config.scene != "builtin":
             raise DatasetError(
-                f"unknown scene {config.scene!r} for data.dataset = \"builtin\" (whose only scene is "
-                f"\"builtin\"); for a scene on disk set data.dataset to one of {', '.join(DATASETS[1:])}."
+                f'unknown scene {config.scene!r} for data.dataset = "builtin" (whose only scene is '
+                f'"builtin"); for a scene on disk set data.dataset to one of {", ".join(DATASETS[1:])}.'
             )
         from .procedural import make_builtin_scene
 
@@ -133,13 +133,12 @@ def load_dataset(config: DataConfig) -> Dataset:
     # would fail load_blender's Literal annotation with a TypeCheckError instead.
     if config.protocol not in ("mixnerf", "dietnerf"):
         raise DatasetError(
-            f"unknown Blender protocol {config.protocol!r}; "
-            'choose "mixnerf" or "dietnerf" (data.protocol)'
+            f'unknown Blender protocol {config.protocol!r}; choose "mixnerf" or "dietnerf" (data.protocol)'
         )
     if config.protocol != "mixnerf" and config.dataset != "blender":
         raise DatasetError(
-            f"data.protocol = {config.protocol!r} is a Blender protocol; the {config.dataset} scenes have one "
-            "protocol. Set data.protocol = \"mixnerf\"."
+            f"data.protocol = {config.protocol!r} is a Blender protocol; the {config.dataset} scenes "
+            'have one protocol. Set data.protocol = "mixnerf".'
         )
     if config.num_train_views < 1:
         raise DatasetError(f"data.num_train_views must be at least 1, got {config.num_train_views}.")
@@ -150,7 +149,9 @@ def load_dataset(config: DataConfig) -> Dataset:
     if config.dataset == "transforms" and Path(config.scene).expanduser().is_absolute():
         scene_dir = Path(config.scene).expanduser()
         if not scene_dir.is_dir():
-            raise DatasetError(f"transforms.json scene not found: {scene_dir} is not a folder. Fix data.scene.")
+            raise DatasetError(
+                f"transforms.json scene not found: {scene_dir} is not a folder. Fix data.scene."
+            )
     else:
         scene_dir = find_scene(data_root(config), config.dataset, config.scene)
 

@@ -35,6 +35,7 @@ from ._files import (
     read_json,
     to_float,
 )
+from ._poses import parse_transform_matrix
 from ._splits import subsample_test_ids
 
 __all__ = ["SCENES", "load_blender", "split_ids"]
@@ -80,7 +81,7 @@ def split_ids(
             raise DatasetError(
                 f"{num_train_views} training views asked for, but the DietNeRF protocol defines "
                 f"{len(DIETNERF_TRAIN_IDS)} ({list(DIETNERF_TRAIN_IDS)}). Ask for at most "
-                f"{len(DIETNERF_TRAIN_IDS)} (data.num_train_views), or use data.protocol = \"mixnerf\"."
+                f'{len(DIETNERF_TRAIN_IDS)} (data.num_train_views), or use data.protocol = "mixnerf".'
             )
         train = list(DIETNERF_TRAIN_IDS[:num_train_views])
         if max(train) >= num_train_frames:
@@ -89,33 +90,24 @@ def split_ids(
                 f"{num_train_frames} frames. Use the original transforms_train.json (100 frames)."
             )
         return train, list(range(0, num_test_frames, DIETNERF_TEST_EVERY))
-    raise DatasetError(f"unknown Blender protocol {protocol!r}; choose \"mixnerf\" or \"dietnerf\" (data.protocol)")
+    raise DatasetError(
+        f'unknown Blender protocol {protocol!r}; choose "mixnerf" or "dietnerf" (data.protocol)'
+    )
 
 
 def _frames(meta: Any, path: Path) -> list[dict]:
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
         raise DatasetError(f"{path}: expected an object with a non-empty 'frames' list. {_ADVICE}")
     if not isinstance(meta.get("camera_angle_x"), (int, float)):
-        raise DatasetError(f"{path}: 'camera_angle_x' (the horizontal field of view) is missing or not a number.")
+        raise DatasetError(
+            f"{path}: 'camera_angle_x' (the horizontal field of view) is missing or not a number."
+        )
     for index, frame in enumerate(meta["frames"]):
         if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
             raise DatasetError(f"{path}: frame {index} has no 'file_path'.")
         if "transform_matrix" not in frame:
             raise DatasetError(f"{path}: frame {index} has no 'transform_matrix'.")
     return meta["frames"]
-
-
-def _pose(frame: dict, index: int, path: Path) -> np.ndarray:
-    try:
-        matrix = np.asarray(frame["transform_matrix"], np.float64)
-    except (TypeError, ValueError):
-        matrix = np.zeros(0)
-    if matrix.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(matrix)):
-        raise DatasetError(
-            f"{path}: frame {index} has a transform_matrix of shape {matrix.shape}; expected a finite "
-            "4x4 camera-to-world matrix. Repair the file or download it again."
-        )
-    return matrix[:3, :4]
 
 
 def _image_path(scene_dir: Path, file_path: str) -> Path:
@@ -152,7 +144,14 @@ def _read_split_images(paths: list[Path]) -> tuple[np.ndarray, list[Path]]:
 def _load_views(scene_dir: Path, ids: list[int], meta: Any, path: Path) -> Views:
     frames = _frames(meta, path)
     paths = [_image_path(scene_dir, frames[i]["file_path"]) for i in ids]
-    poses = np.stack([_pose(frames[i], i, path) for i in ids])
+    poses = np.stack(
+        [
+            parse_transform_matrix(
+                frames[i]["transform_matrix"], f"{path}: the transform_matrix of frame {i}"
+            )
+            for i in ids
+        ]
+    )
     images, _ = _read_split_images(paths)
     width = images.shape[2]
     focal = 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))

@@ -40,9 +40,7 @@ from ._splits import subsample_test_ids
 
 __all__ = ["SCANS", "dtu_cameras", "load_dtu", "protocol_ids"]
 
-SCANS = tuple(
-    f"scan{number}" for number in (8, 21, 30, 31, 34, 38, 40, 41, 45, 55, 63, 82, 103, 110, 114)
-)
+SCANS = tuple(f"scan{number}" for number in (8, 21, 30, 31, 34, 38, 40, 41, 45, 55, 63, 82, 103, 110, 114))
 TRAIN_IDS = (25, 22, 28, 40, 44, 48, 0, 8, 13)
 EXCLUDED_IDS = (3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 36, 37, 38, 39)
 NUM_VIEWS = 49
@@ -88,9 +86,7 @@ def _read_cameras(path: Path, count: int) -> list[np.ndarray]:
     return matrices
 
 
-def dtu_cameras(
-    projections: Sequence[np.ndarray], source: Path
-) -> tuple[np.ndarray, np.ndarray]:
+def dtu_cameras(projections: Sequence[np.ndarray], source: Path) -> tuple[np.ndarray, np.ndarray]:
     """Decomposes and normalises a scan's projection matrices as RegNeRF does.
 
     **Arguments:**
@@ -123,7 +119,9 @@ def dtu_cameras(
     return np.stack(intrinsics), camtoworlds
 
 
-def _mask_paths(mask_roots: Sequence[Path], scan: str, ids: Sequence[int], explicit: bool) -> list[Path] | None:
+def _mask_paths(
+    mask_roots: Sequence[Path], scan: str, ids: Sequence[int], explicit: bool
+) -> list[Path] | None:
     for root in mask_roots:
         scan_dir = root / scan
         if not scan_dir.is_dir():

@@ -36,6 +36,7 @@ from ._files import (
     read_images,
     read_json,
 )
+from ._poses import parse_transform_matrix
 from ._splits import holdout_split, subsample_test_ids
 
 __all__ = ["default_bounds", "load_transforms"]
@@ -61,7 +62,9 @@ def _number(frame: dict, meta: dict, key: str, path: Path) -> float | None:
     return float(value)
 
 
-def _frame_intrinsics(frame: dict, meta: dict, width: int, height: int, path: Path, image: Path) -> np.ndarray:
+def _frame_intrinsics(
+    frame: dict, meta: dict, width: int, height: int, path: Path, image: Path
+) -> np.ndarray:
     stated = (_number(frame, meta, "w", path), _number(frame, meta, "h", path))
     if None not in stated and (round(stated[0]), round(stated[1])) != (width, height):
         raise DatasetError(
@@ -116,19 +119,6 @@ def _frames(meta: Any, path: Path) -> list[dict]:
     return sorted(frames, key=lambda frame: natural_key(frame["file_path"]))
 
 
-def _pose(frame: dict, path: Path) -> np.ndarray:
-    try:
-        matrix = np.asarray(frame["transform_matrix"], np.float64)
-    except (TypeError, ValueError):
-        matrix = np.zeros(0)
-    if matrix.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(matrix)):
-        raise DatasetError(
-            f"{path}: the transform_matrix of {frame['file_path']} has shape {matrix.shape}; expected a "
-            "finite 4x4 camera-to-world matrix."
-        )
-    return matrix[:3, :4]
-
-
 def _image_path(scene_dir: Path, file_path: str) -> Path:
     path = scene_dir / file_path
     if path.suffix or path.is_file():
@@ -163,7 +153,12 @@ def load_transforms(
     path = scene_dir / "transforms.json"
     meta = read_json(path, "transforms.json", _ADVICE)
     frames = _frames(meta, path)
-    poses = np.stack([_pose(frame, path) for frame in frames])
+    poses = np.stack(
+        [
+            parse_transform_matrix(f["transform_matrix"], f"{path}: the transform_matrix of {f['file_path']}")
+            for f in frames
+        ]
+    )
     train_ids, test_ids = holdout_split(len(frames), HOLDOUT_EVERY, num_train_views, path)
     test_ids = subsample_test_ids(test_ids, max_test_views)
     near, far = default_bounds(poses) if bounds is None else bounds

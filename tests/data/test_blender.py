@@ -181,7 +181,7 @@ def test_pose_of_wrong_shape(scene):
     meta["frames"][1]["transform_matrix"] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
     (scene_dir / "transforms_train.json").write_text(json.dumps(meta))
     with pytest.raises(
-        DatasetError, match=r"transforms_train\.json: frame 1 has a transform_matrix of shape \(3, 3\)"
+        DatasetError, match=r"transforms_train\.json: the transform_matrix of frame 1 has shape \(3, 3\)"
     ):
         load_blender(scene_dir, num_train_views=2)
 
