@@ -35,6 +35,10 @@ with (
     from ._mixture import LaplaceMixture as LaplaceMixture
     from ._model import MixNeRF as MixNeRF
     from ._model import RenderOutputs as RenderOutputs
+    from ._occupancy import OccupancyGrid as OccupancyGrid
+    from ._occupancy import empty_grid as empty_grid
+    from ._occupancy import refresh_occupancy as refresh_occupancy
+    from ._occupancy import update_occupancy as update_occupancy
     from ._rays import RayBundle as RayBundle
     from ._rays import RaySamples as RaySamples
     from ._rays import camera_rays as camera_rays
@@ -48,3 +52,5 @@ with (
     from ._sampler import AbstractSampler as AbstractSampler
     from ._sampler import HierarchicalSampler as HierarchicalSampler
     from ._sampler import StratifiedSampler as StratifiedSampler
+    from ._skipping import RenderStats as RenderStats
+    from ._skipping import Skipping as Skipping

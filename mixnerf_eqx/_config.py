@@ -121,6 +121,27 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class OccupancyConfig:
+    enabled: bool = False  # keep an occupancy grid and skip empty space and finished rays when rendering
+    resolution: int = 128  # grid cells per axis
+    box_radius: float = (
+        0.0  # > 0: the grid spans [-r, r]^3 and nothing lies outside; 0: the training frusta's box
+    )
+    density_threshold: float = 0.01  # a cell is occupied where its density exceeds this
+    dilation: int = 1  # occupied cells also mark this many neighbouring cells on every side
+    decay: float = 0.95  # each update keeps max(decay * old, new) per cell
+    update_every: int = 16  # training steps between grid updates
+    update_fraction: float = (
+        0.25  # share of the cells that one update re-evaluates (every cell in 1/this updates)
+    )
+    stop_transmittance: float = (
+        1e-4  # rendering: a ray stops once its transmittance falls below this (0: off)
+    )
+    segments: int = 4  # rendering: pieces of each level between which finished rays are dropped
+    chunk: int = 16384  # rendering with skipping: rays per chunk
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     name: str = "mixnerf"  # a name for the run
     reproduces: str = ""  # the paper cell this config reproduces, if any
@@ -129,6 +150,7 @@ class Config:
     loss: LossConfig = LossConfig()
     optim: OptimConfig = OptimConfig()
     train: TrainConfig = TrainConfig()
+    occupancy: OccupancyConfig = OccupancyConfig()
 
     def __post_init__(self):
         validate(self)
@@ -156,6 +178,25 @@ def validate(config: Config) -> None:
         problems.append("loss.likelihood_floor must be >= 0")
     if not 0 < config.train.anneal_start <= 1:
         problems.append("train.anneal_start must lie in (0, 1]")
+    occupancy = config.occupancy
+    if occupancy.resolution < 2:
+        problems.append(f"occupancy.resolution must be at least 2, got {occupancy.resolution}")
+    if occupancy.box_radius < 0:
+        problems.append("occupancy.box_radius must be >= 0")
+    if occupancy.density_threshold < 0:
+        problems.append("occupancy.density_threshold must be >= 0")
+    if occupancy.dilation < 0:
+        problems.append("occupancy.dilation must be >= 0")
+    if not 0 <= occupancy.decay <= 1:
+        problems.append("occupancy.decay must lie in [0, 1]")
+    if occupancy.update_every < 1:
+        problems.append("occupancy.update_every must be positive")
+    if not 0 < occupancy.update_fraction <= 1:
+        problems.append("occupancy.update_fraction must lie in (0, 1]")
+    if not 0 <= occupancy.stop_transmittance < 1:
+        problems.append("occupancy.stop_transmittance must lie in [0, 1)")
+    if occupancy.segments < 1 or occupancy.chunk < 1:
+        problems.append("occupancy.segments and occupancy.chunk must be positive")
     if problems:
         raise ConfigError("; ".join(problems))
 
@@ -166,6 +207,7 @@ _SECTIONS = {
     "loss": LossConfig,
     "optim": OptimConfig,
     "train": TrainConfig,
+    "occupancy": OccupancyConfig,
 }
 
 

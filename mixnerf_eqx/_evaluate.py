@@ -10,6 +10,7 @@ import numpy as np
 
 from ._model import MixNeRF
 from ._rays import RayBundle
+from ._skipping import RenderStats, Skipping, render_chunk_skipping
 from .data import Dataset, Views, rays_for_views
 from .metrics import (
     average_error,
@@ -29,11 +30,27 @@ def _render_chunk(model: MixNeRF, rays: RayBundle):
     return outputs.fine.rgb, outputs.fine.depth, outputs.fine.acc
 
 
-def render_rays(model: MixNeRF, rays: RayBundle, chunk: int = 4096):
+def render_rays(
+    model: MixNeRF,
+    rays: RayBundle,
+    chunk: int = 4096,
+    *,
+    skipping: Skipping | None = None,
+    stats: RenderStats | None = None,
+):
     """Deterministically renders any number of rays, `chunk` rays at a time.
 
     Every call of the compiled renderer sees exactly `chunk` rays (the last chunk is padded),
     so it compiles once, and device memory is bounded by the chunk, not by the image.
+
+    **Arguments:**
+
+    - `model`: the model.
+    - `rays`: rays of any batch shape.
+    - `chunk`: rays rendered at once.
+    - `skipping`: skip empty space and finished rays (see `mixnerf_eqx._skipping`); `None`
+      evaluates the field at every sample.
+    - `stats`: a `RenderStats` that receives the ray and field-evaluation counts.
 
     **Returns:**
 
@@ -53,15 +70,39 @@ def render_rays(model: MixNeRF, rays: RayBundle, chunk: int = 4096):
             piece = jax.tree_util.tree_map(
                 lambda x, pad=pad: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), piece
             )
-        out_rgb, out_depth, out_acc = _render_chunk(model, piece)
+        if skipping is None:
+            out_rgb, out_depth, out_acc = _render_chunk(model, piece)
+            if stats is not None:
+                samples = model.coarse_sampler.num_samples + model.fine_sampler.num_samples
+                stats.rays += stop - start
+                stats.dense_evaluations += (stop - start) * samples
+                stats.field_evaluations += (stop - start) * samples
+                stats.padded_evaluations += chunk * samples
+        else:
+            valid = jnp.arange(chunk) < stop - start
+            fine = render_chunk_skipping(
+                model, piece, valid, skipping, RenderStats() if stats is None else stats
+            )
+            out_rgb, out_depth, out_acc = fine.rgb, fine.depth, fine.acc
         rgb[start:stop] = np.asarray(out_rgb)[: stop - start]
         depth[start:stop] = np.asarray(out_depth)[: stop - start]
         acc[start:stop] = np.asarray(out_acc)[: stop - start]
     return rgb.reshape(*batch_shape, 3), depth.reshape(batch_shape), acc.reshape(batch_shape)
 
 
-def render_views(model: MixNeRF, views: Views, near: float, far: float, chunk: int = 4096):
+def render_views(
+    model: MixNeRF,
+    views: Views,
+    near: float,
+    far: float,
+    chunk: int = 4096,
+    *,
+    skipping: Skipping | None = None,
+    stats: RenderStats | None = None,
+):
     """Renders every view of `views`; the rays of one view at a time exist on the host.
+
+    `skipping` and `stats` are passed to `render_rays`.
 
     **Returns:**
 
@@ -72,7 +113,7 @@ def render_views(model: MixNeRF, views: Views, near: float, far: float, chunk: i
     acc = np.empty_like(depth)
     for index in range(views.num_views):
         rays = rays_for_views(views.select([index]), near, far)
-        view_rgb, view_depth, view_acc = render_rays(model, rays, chunk)
+        view_rgb, view_depth, view_acc = render_rays(model, rays, chunk, skipping=skipping, stats=stats)
         rgb[index], depth[index], acc[index] = view_rgb[0], view_depth[0], view_acc[0]
     return rgb, depth, acc
 
@@ -126,6 +167,8 @@ def evaluate(
     view_ids: Sequence[int] | None = None,
     with_lpips: bool = True,
     on_view: Callable[[int, dict[str, Any], tuple[np.ndarray, np.ndarray, np.ndarray]], None] | None = None,
+    skipping: Skipping | None = None,
+    stats: RenderStats | None = None,
 ):
     """Renders the test views one at a time and scores each.
 
@@ -138,6 +181,7 @@ def evaluate(
     - `with_lpips`: compute LPIPS where its weights are installed.
     - `on_view`: called as `on_view(position, metrics, (rgb, depth, acc))` after each view,
       e.g. to write its PNGs, so that nothing but the metrics has to be kept.
+    - `skipping`, `stats`: passed to `render_rays`.
 
     **Returns:**
 
@@ -147,7 +191,9 @@ def evaluate(
     per_view = []
     for index in range(views.num_views):
         one = views.select([index])
-        rgb, depth, acc = render_views(model, one, dataset.near, dataset.far, chunk)
+        rgb, depth, acc = render_views(
+            model, one, dataset.near, dataset.far, chunk, skipping=skipping, stats=stats
+        )
         mask = None if one.masks is None else one.masks[0]
         entry: dict[str, Any] = {"view": int(one.ids[0])}
         entry.update(image_metrics(rgb[0], one.images[0], mask=mask, with_lpips=with_lpips))

@@ -22,8 +22,10 @@ from ._evaluate import evaluate, render_rays, render_views  # noqa: F401 (render
 from ._images import colourise_depth, save_png
 from ._loss import LossTerms, loss_fn
 from ._model import MixNeRF
+from ._occupancy import OccupancyGrid, empty_grid, frustum_box, refresh_occupancy, update_occupancy
 from ._rays import RayBundle
 from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
+from ._skipping import RenderStats, Skipping
 from .data import Dataset, load_dataset, rays_for_views
 
 
@@ -146,6 +148,45 @@ def make_train_step(
     return eqx.filter_jit(train_step)
 
 
+def make_occupancy_grid(config: Config, dataset: Dataset) -> OccupancyGrid:
+    """An unevaluated grid for `dataset` as `config.occupancy` says.
+
+    With `occupancy.box_radius > 0` the grid spans `[-r, r]^3` and the scene is taken to lie
+    inside it; otherwise it spans the box of the training rays between near and far (in NDC
+    for LLFF scenes) and points outside it count as occupied.
+    """
+    occupancy = config.occupancy
+    if occupancy.box_radius > 0:
+        radius = occupancy.box_radius
+        box_min, box_max, outside_occupied = (-radius,) * 3, (radius,) * 3, False
+    else:
+        box_min, box_max = frustum_box(rays_for_views(dataset.train, dataset.near, dataset.far))
+        outside_occupied = True
+    return empty_grid(
+        box_min,
+        box_max,
+        resolution=occupancy.resolution,
+        threshold=occupancy.density_threshold,
+        dilation=occupancy.dilation,
+        outside_occupied=outside_occupied,
+    )
+
+
+def make_skipping(config: Config, grid: OccupancyGrid | None) -> Skipping:
+    """The rendering options of `config.occupancy` with `grid`."""
+    occupancy = config.occupancy
+    return Skipping(grid=grid, stop_transmittance=occupancy.stop_transmittance, segments=occupancy.segments)
+
+
+_update_occupancy = eqx.filter_jit(update_occupancy)
+_refresh_occupancy = eqx.filter_jit(refresh_occupancy)
+
+
+def occupancy_for_model(config: Config, dataset: Dataset, model: MixNeRF, *, key: PRNGKey) -> OccupancyGrid:
+    """A grid of `model`'s density evaluated in every cell (for rendering a trained model)."""
+    return _refresh_occupancy(make_occupancy_grid(config, dataset), model.field, key=key)
+
+
 # Train-section keys that do not change the trajectory: a run may resume with them changed.
 _COSMETIC_TRAIN_KEYS = (
     "eval_every",
@@ -156,11 +197,14 @@ _COSMETIC_TRAIN_KEYS = (
     "typecheck",
     "max_nonfinite_steps",
 )
+# Occupancy-grid settings shape only what is rendered, never the trained parameters.
+_COSMETIC_SECTIONS = ("occupancy",)
 
 
 def _comparable(config_dict: dict[str, Any]) -> dict[str, Any]:
     train = {k: v for k, v in config_dict["train"].items() if k not in _COSMETIC_TRAIN_KEYS}
-    return {**config_dict, "train": train, "name": None, "reproduces": None}
+    kept = {k: v for k, v in config_dict.items() if k not in _COSMETIC_SECTIONS}
+    return {**kept, "train": train, "name": None, "reproduces": None}
 
 
 @dataclasses.dataclass
@@ -245,6 +289,11 @@ def fit(
 
     data = training_rays(dataset)
     train_step = make_train_step(config, optimizer, max_traces=1)
+    occupancy = config.occupancy
+    # The grid is rebuilt (from unevaluated, so all-occupied, cells) when a run resumes: it
+    # only shapes what is rendered, never the training trajectory.
+    grid = make_occupancy_grid(config, dataset) if occupancy.enabled else None
+    grid_key = jax.random.fold_in(train_key, 0x0CC)
     history: list[dict[str, Any]] = []
     log_path = run_dir / "train_log.jsonl"
     max_steps = config.train.max_steps
@@ -295,10 +344,24 @@ def fit(
                         skipped=skipped_total,
                     )
                     bar.update(done - bar.n)
+                if grid is not None and done % occupancy.update_every == 0:
+                    grid = _update_occupancy(
+                        grid,
+                        model.field,
+                        key=jax.random.fold_in(grid_key, done),
+                        decay=occupancy.decay,
+                        fraction=occupancy.update_fraction,
+                        offset=jnp.asarray(done // occupancy.update_every, jnp.int32),
+                    )
                 if config.train.eval_every and done % config.train.eval_every == 0 and done < max_steps:
                     ids = list(range(min(config.train.num_eval_views, dataset.test.num_views)))
                     means, _ = evaluate(
-                        model, dataset, chunk=config.train.render_chunk, view_ids=ids, with_lpips=False
+                        model,
+                        dataset,
+                        chunk=occupancy.chunk if grid is not None else config.train.render_chunk,
+                        view_ids=ids,
+                        with_lpips=False,
+                        skipping=None if grid is None else make_skipping(config, grid),
                     )
                     shown = ", ".join(f"{k} {v:.4f}" for k, v in means.items() if v is not None)
                     bar.write(f"step {done}: held-out {shown}")
@@ -336,17 +399,47 @@ def fit(
         if write_renders:
             write_view_renders(renders, dataset, index, entry["view"], outputs)
 
-    means, per_view = evaluate(model, dataset, chunk=config.train.render_chunk, on_view=write_view)
+    skipping = None
+    if grid is not None:
+        grid = _refresh_occupancy(grid, model.field, key=jax.random.fold_in(grid_key, step + 1))
+        skipping = make_skipping(config, grid)
+    stats = RenderStats()
+    render_timer = time.perf_counter()
+    means, per_view = evaluate(
+        model,
+        dataset,
+        chunk=config.train.render_chunk if grid is None else occupancy.chunk,
+        on_view=write_view,
+        skipping=skipping,
+        stats=stats,
+    )
     metrics = {
         "step": step,
         "skipped_steps": skipped_total,
         "scene": dataset.name,
         "test": means,
         "per_view": per_view,
+        "render": render_summary(stats, time.perf_counter() - render_timer, len(per_view), grid),
         "config": config_dict,
     }
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return TrainResult(model=model, metrics=metrics, run_dir=run_dir, history=history)
+
+
+def render_summary(
+    stats: RenderStats, seconds: float, num_views: int, grid: OccupancyGrid | None
+) -> dict[str, Any]:
+    """Per-frame render cost: field evaluations made and needed, and seconds (scoring included)."""
+    frames = max(num_views, 1)
+    return {
+        "skipping": grid is not None,
+        "occupied_fraction": None if grid is None else float(grid.occupied_fraction()),
+        "dense_evaluations_per_frame": stats.dense_evaluations / frames,
+        "field_evaluations_per_frame": stats.padded_evaluations / frames,
+        "needed_evaluations_per_frame": stats.field_evaluations / frames,
+        "evaluation_reduction": stats.reduction,
+        "seconds_per_frame": seconds / frames,
+    }
 
 
 def write_view_renders(folder: Path, dataset: Dataset, index: int, view_id: int, outputs) -> None:

@@ -29,6 +29,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--max-views", type=int, default=0, help="evaluate this many test views, evenly spaced"
     )
+    parser.add_argument(
+        "--skipping",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="skip empty space and finished rays with an occupancy grid built from the checkpoint "
+        "(auto: if the run's occupancy.enabled)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/eval)")
     parser.add_argument("--no-renders", action="store_true", help="write no PNGs")
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
@@ -65,7 +72,14 @@ def run(args: argparse.Namespace) -> dict:
     from mixnerf_eqx._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta
     from mixnerf_eqx._config import config_from_dict, init_key
     from mixnerf_eqx._evaluate import evaluate
-    from mixnerf_eqx._train import make_optimizer, write_view_renders
+    from mixnerf_eqx._skipping import RenderStats
+    from mixnerf_eqx._train import (
+        make_optimizer,
+        make_skipping,
+        occupancy_for_model,
+        render_summary,
+        write_view_renders,
+    )
     from mixnerf_eqx.data import load_dataset
     from mixnerf_eqx.data._splits import evenly_spaced
     from mixnerf_eqx.metrics import lpips_available
@@ -85,7 +99,8 @@ def run(args: argparse.Namespace) -> dict:
     config = config_from_dict(config_dict, str(run_dir / "config.json"))
     if args.data_dir is not None:
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=args.data_dir))
-    chunk = args.chunk or config.train.render_chunk
+    use_skipping = args.skipping == "on" or (args.skipping == "auto" and config.occupancy.enabled)
+    chunk = args.chunk or (config.occupancy.chunk if use_skipping else config.train.render_chunk)
 
     dataset = load_dataset(config.data)
     model_key, train_key = jax.random.split(init_key(config))
@@ -113,13 +128,27 @@ def run(args: argparse.Namespace) -> dict:
         bar.update(1)
 
     started = time.perf_counter()
+    grid = skipping = None
+    if use_skipping:
+        grid = occupancy_for_model(config, dataset, model, key=jax.random.fold_in(train_key, step))
+        skipping = make_skipping(config, grid)
+    grid_seconds = time.perf_counter() - started
+    stats = RenderStats()
     try:
         means, per_view = evaluate(
-            model, subset, chunk=chunk, with_lpips=not args.no_lpips, on_view=after_view
+            model,
+            subset,
+            chunk=chunk,
+            with_lpips=not args.no_lpips,
+            on_view=after_view,
+            skipping=skipping,
+            stats=stats,
         )
     finally:
         bar.close()
     seconds = time.perf_counter() - started
+    render = render_summary(stats, seconds - grid_seconds, num_views, grid)
+    render["grid_seconds"] = grid_seconds
     lpips_note = "computed"
     if args.no_lpips:
         lpips_note = "skipped (--no-lpips)"
@@ -133,12 +162,19 @@ def run(args: argparse.Namespace) -> dict:
         "num_views": num_views,
         "lpips": lpips_note,
         "seconds": seconds,
+        "render": render,
         "mean": means,
         "per_view": per_view,
     }
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
     print(format_table(per_view, means))
     print(f"\n{dataset.name}, step {step}, {num_views} views in {seconds:.1f} s; LPIPS {lpips_note}")
+    if grid is not None:
+        print(
+            f"skipping: {render['occupied_fraction']:.1%} of the grid occupied, "
+            f"{render['field_evaluations_per_frame']:.0f} field evaluations per frame instead of "
+            f"{render['dense_evaluations_per_frame']:.0f} ({render['evaluation_reduction']:.2f}x fewer)"
+        )
     print(f"metrics: {out / 'metrics.json'}")
     if not args.no_renders:
         print(f"renders: {out}")

@@ -75,6 +75,29 @@ def test_eval_of_a_subset_and_without_lpips(trained, tiny_scene, tmp_path):
     assert not list(out.glob("*.png"))
 
 
+def test_eval_with_skipping_reports_its_cost_and_stays_within_a_tenth_of_a_db(trained, tmp_path):
+    out = tmp_path / "skipping"
+    code = eval_main(
+        [
+            str(trained.run_dir),
+            "--skipping",
+            "on",
+            "--no-lpips",
+            "--no-renders",
+            "--no-progress",
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0
+    written = json.loads((out / "metrics.json").read_text())
+    render = written["render"]
+    assert render["skipping"] and render["grid_seconds"] > 0
+    assert render["needed_evaluations_per_frame"] <= render["field_evaluations_per_frame"]
+    assert render["field_evaluations_per_frame"] <= render["dense_evaluations_per_frame"]
+    assert written["mean"]["psnr"] == pytest.approx(trained.metrics["test"]["psnr"], abs=0.1)
+
+
 def test_evaluate_means_are_means_of_the_views(trained, tiny_scene):
     means, per_view = evaluate(trained.model, tiny_scene, chunk=512, with_lpips=False)
     assert means["psnr"] == pytest.approx(np.mean([v["psnr"] for v in per_view]))

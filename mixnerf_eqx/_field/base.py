@@ -32,6 +32,14 @@ class AbstractField(eqx.Module):
         """Whether the field predicts `beta` and `ray_depth` (needed by the mixture losses)."""
 
     @abc.abstractmethod
+    def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
+        """The noise-free density at one Gaussian, without the view-dependent branch.
+
+        Equal to `self(mean, cov, viewdir).density` for every `viewdir`; occupancy grids
+        call this, so they pay for the density only.
+        """
+
+    @abc.abstractmethod
     def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         """Evaluates the field at one Gaussian.
 

@@ -131,14 +131,21 @@ class MipNeRFField(AbstractField):
     def has_mixture_heads(self) -> bool:
         return self.beta_head is not None and self.depth_head is not None
 
-    def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
+    def _trunk(self, mean: Vec3, cov: Vec3) -> tuple[Float[Array, "features"], Float[Array, ""]]:
+        """The trunk's last features and the raw density (before noise and softplus)."""
         inputs = integrated_positional_encoding(mean, cov, self.min_deg, self.max_deg)
         hidden = inputs
         for layer_index, layer in enumerate(self.trunk):
             hidden = jax.nn.relu(self._dense(layer, hidden))
             if self._skips_after(layer_index, self.skip_layer):
                 hidden = jnp.concatenate([hidden, inputs])
-        raw_density = self._dense(self.density_head, hidden)[0] + self.density_bias
+        return hidden, self._dense(self.density_head, hidden)[0] + self.density_bias
+
+    def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
+        return jax.nn.softplus(self._trunk(mean, cov)[1])
+
+    def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
+        hidden, raw_density = self._trunk(mean, cov)
         if key is not None and self.density_noise > 0:
             raw_density = raw_density + self.density_noise * jax.random.normal(key, (), raw_density.dtype)
         density = jax.nn.softplus(raw_density)

@@ -1,0 +1,261 @@
+"""The occupancy grid and the renderer that skips empty space and finished rays.
+
+References: a sphere of known density whose occupied cells and renders follow from geometry,
+numpy re-implementations of the cell lookup, and the dense renderer.
+"""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jaxtyping import Array, Float
+
+import mixnerf_eqx as mx
+from mixnerf_eqx import ConfigError
+from mixnerf_eqx._evaluate import render_rays
+from mixnerf_eqx._occupancy import (
+    empty_grid,
+    frustum_box,
+    refresh_occupancy,
+    update_occupancy,
+)
+from mixnerf_eqx._skipping import RenderStats, Skipping, _coarse_samples, _render_level
+from mixnerf_eqx._train import fit
+from mixnerf_eqx.metrics import psnr
+
+
+class SphereField(mx.AbstractField):
+    """Density `inside` in a ball, zero outside; a colour that varies with position."""
+
+    centre: Float[Array, "3"]
+    inside: Float[Array, ""]
+    radius: float = eqx.field(static=True)
+
+    @property
+    def has_mixture_heads(self) -> bool:
+        return False
+
+    def density(self, mean, cov):
+        del cov
+        return jnp.where(jnp.linalg.norm(mean - self.centre) < self.radius, self.inside, 0.0)
+
+    def __call__(self, mean, cov, viewdir, *, key=None):
+        del key
+        rgb = 0.5 + 0.4 * jnp.sin(3.0 * mean + viewdir)
+        return mx.FieldOutputs(density=self.density(mean, cov), rgb=rgb, beta=None, ray_depth=None)
+
+
+def _sphere(inside=20.0, radius=0.6):
+    return SphereField(centre=jnp.array([0.1, -0.05, 0.0]), inside=jnp.asarray(inside), radius=radius)
+
+
+def _sphere_model(field, samples=64):
+    return mx.MixNeRF(
+        field=field,
+        coarse_sampler=mx.StratifiedSampler(samples),
+        fine_sampler=mx.HierarchicalSampler(samples),
+        renderer=mx.VolumeRenderer((1.0, 1.0, 1.0)),
+        mixture=None,
+    )
+
+
+def _camera_rays(size=32, distance=4.0, zoom=1.2):
+    """A camera on the +z axis looking at the origin, near 2, far 6 (focal `zoom * size`)."""
+    pose = np.array([[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, distance]]], np.float32)
+    return mx.camera_rays(pose, zoom * size, size, size, 2.0, 6.0).reshape(-1)
+
+
+def _cell_centres(grid):
+    res = grid.resolution
+    cell = np.asarray(grid.cell_size, np.float64)
+    index = np.stack(np.meshgrid(*(np.arange(res),) * 3, indexing="ij"), axis=-1)
+    return np.asarray(grid.box_min, np.float64) + (index + 0.5) * cell, cell
+
+
+def test_refreshed_grid_marks_exactly_the_cells_the_sphere_decides():
+    field = _sphere()
+    grid = empty_grid((-1.5,) * 3, (1.5,) * 3, resolution=24, threshold=1.0, dilation=0)
+    grid = refresh_occupancy(grid, field, key=jax.random.key(0))
+    centres, cell = _cell_centres(grid)
+    distance = np.linalg.norm(centres - np.asarray(field.centre, np.float64), axis=-1)
+    half_diagonal = 0.5 * np.linalg.norm(cell)
+    mask = np.asarray(grid.mask())
+    # A cell wholly inside the ball is occupied wherever its random point falls; one wholly
+    # outside is empty. Cells the surface cuts may go either way.
+    inside = distance < field.radius - half_diagonal
+    outside = distance > field.radius + half_diagonal
+    assert inside.sum() > 20 and outside.sum() > 1000
+    assert mask[inside].all()
+    assert not mask[outside].any()
+    assert not np.isinf(np.asarray(grid.density)).any()
+
+
+def test_dilation_marks_the_neighbours_of_occupied_cells():
+    density = np.zeros((9, 9, 9), np.float32)
+    density[4, 4, 4] = 1.0
+    density[0, 8, 0] = 1.0
+    grid = mx.OccupancyGrid(
+        density=jnp.asarray(density),
+        box_min=jnp.zeros(3),
+        box_max=jnp.ones(3),
+        threshold=0.5,
+        dilation=1,
+        outside_occupied=False,
+    )
+    expected = np.zeros((9, 9, 9), bool)
+    expected[3:6, 3:6, 3:6] = True
+    expected[0:2, 7:9, 0:2] = True
+    np.testing.assert_array_equal(np.asarray(grid.mask()), expected)
+
+
+@pytest.mark.parametrize("outside_occupied", [False, True])
+def test_lookup_matches_a_numpy_reference(outside_occupied):
+    rng = np.random.default_rng(0)
+    mask = rng.uniform(size=(7, 7, 7)) < 0.4
+    box_min, box_max = np.array([-1.0, 0.0, 2.0]), np.array([1.0, 3.0, 2.5])
+    grid = mx.OccupancyGrid(
+        density=jnp.asarray(mask.astype(np.float32)),
+        box_min=jnp.asarray(box_min, jnp.float32),
+        box_max=jnp.asarray(box_max, jnp.float32),
+        threshold=0.5,
+        dilation=0,
+        outside_occupied=outside_occupied,
+    )
+    points = rng.uniform(box_min - 0.3, box_max + 0.3, size=(5000, 3)).astype(np.float32)
+    cells = np.floor((points - box_min) / ((box_max - box_min) / 7)).astype(int)
+    inside = np.all((cells >= 0) & (cells < 7), axis=-1)
+    clipped = np.clip(cells, 0, 6)
+    expected = np.where(inside, mask[clipped[:, 0], clipped[:, 1], clipped[:, 2]], outside_occupied)
+    # Points within float32 rounding of a cell wall may land on either side.
+    scaled = (points - box_min) / ((box_max - box_min) / 7)
+    clear = np.all(np.abs(scaled - np.round(scaled)) > 1e-4, axis=-1)
+    got = np.asarray(grid.occupied(jnp.asarray(points)))
+    assert (~inside).sum() > 500
+    np.testing.assert_array_equal(got[clear], expected[clear])
+
+
+def test_partial_updates_visit_every_cell_once_per_cycle():
+    field = _sphere()
+    grid = empty_grid((-1.0,) * 3, (1.0,) * 3, resolution=10, dilation=0)
+    unevaluated = []
+    for offset in range(4):
+        grid = update_occupancy(grid, field, key=jax.random.key(offset), fraction=0.25, offset=offset)
+        unevaluated.append(int(np.isinf(np.asarray(grid.density)).sum()))
+    assert unevaluated == [750, 500, 250, 0]
+
+
+def test_updates_keep_the_decayed_maximum():
+    ball = SphereField(centre=jnp.zeros(3), inside=jnp.asarray(8.0), radius=100.0)
+    grid = refresh_occupancy(empty_grid((-1.0,) * 3, (1.0,) * 3, resolution=4), ball, key=jax.random.key(0))
+    np.testing.assert_allclose(np.asarray(grid.density), 8.0)
+    weaker = eqx.tree_at(lambda f: f.inside, ball, jnp.asarray(1.0))
+    decayed = update_occupancy(grid, weaker, key=jax.random.key(1), decay=0.5)
+    np.testing.assert_allclose(np.asarray(decayed.density), 4.0)
+    stronger = eqx.tree_at(lambda f: f.inside, ball, jnp.asarray(6.0))
+    raised = update_occupancy(decayed, stronger, key=jax.random.key(2), decay=0.5)
+    np.testing.assert_allclose(np.asarray(raised.density), 6.0)
+    replaced = refresh_occupancy(raised, weaker, key=jax.random.key(3))
+    np.testing.assert_allclose(np.asarray(replaced.density), 1.0)
+
+
+def test_frustum_box_holds_every_sample_and_ndc_depth_spans_minus_one_to_one():
+    rng = np.random.default_rng(1)
+    poses = np.concatenate([np.eye(3)[None].repeat(3, 0), rng.normal(0, 0.2, (3, 3, 1))], axis=-1)
+    rays = mx.camera_rays(poses.astype(np.float32), 20.0, 16, 24, 2.0, 6.0)
+    low, high = frustum_box(rays)
+    t = np.linspace(2.0, 6.0, 17)
+    flat = rays.reshape(-1)
+    points = np.asarray(flat.origins)[:, None] + np.asarray(flat.directions)[:, None] * t[:, None]
+    assert np.all(points >= low) and np.all(points <= high)
+    ndc = mx.camera_rays(poses.astype(np.float32), 20.0, 16, 24, 0.0, 1.0, ndc=True)
+    low, high = frustum_box(ndc)
+    np.testing.assert_allclose([low[2], high[2]], [-1.02, 1.02], atol=1e-4)
+
+
+def test_skipping_nothing_equals_the_dense_render(tiny_config):
+    model = mx.build_model(tiny_config, key=jax.random.key(0))
+    rays = _camera_rays(size=12)
+    dense = render_rays(model, rays, 100)
+    stats = RenderStats()
+    sparse = render_rays(model, rays, 100, skipping=Skipping(None, 0.0, 3, min_bucket=64), stats=stats)
+    for a, b in zip(dense, sparse, strict=True):
+        np.testing.assert_allclose(a, b, atol=2e-6)
+    assert stats.rays == 144 and stats.field_evaluations == stats.dense_evaluations == 144 * 32
+
+
+def test_stopping_finished_rays_changes_a_level_by_at_most_the_threshold():
+    model = _sphere_model(_sphere(inside=5.0))
+    rays = _camera_rays(size=16, zoom=5.0)  # the sphere fills the frame
+    samples = _coarse_samples(model, rays)
+    valid = jnp.ones(rays.batch_shape, bool)
+    dense = _render_level(model, rays, samples, valid, Skipping(None, 0.0, 1), RenderStats())
+    stats = RenderStats()
+    stop = 0.05
+    cut = _render_level(model, rays, samples, valid, Skipping(None, stop, 16, min_bucket=16), stats)
+    # The dropped samples come after transmittance fell below `stop`, so their weights sum to
+    # less than it, and each moves the colour by at most |c - background| <= 1 per unit weight.
+    assert float(jnp.max(jnp.abs(cut.acc - dense.acc))) <= stop
+    assert float(jnp.max(jnp.abs(cut.rgb - dense.rgb))) <= stop
+    assert stats.field_evaluations < 0.8 * 256 * 64
+
+
+def test_skipping_renders_the_sphere_within_a_tenth_of_a_db_with_a_third_of_the_work():
+    field = _sphere()
+    model = _sphere_model(field)
+    rays = _camera_rays(size=40)
+    grid = empty_grid((-1.5,) * 3, (1.5,) * 3, resolution=48, threshold=0.01, outside_occupied=False)
+    grid = refresh_occupancy(grid, field, key=jax.random.key(0))
+    dense_rgb, dense_depth, _ = render_rays(model, rays, 512)
+    stats = RenderStats()
+    rgb, depth, _ = render_rays(model, rays, 512, skipping=Skipping(grid, 1e-4, 4), stats=stats)
+    # The dense render is the reference image: the PSNR of the skipped render against it must
+    # be high enough that a 0.1 dB change of any test PSNR below 40 dB is impossible.
+    assert psnr(rgb.reshape(40, 40, 3), dense_rgb.reshape(40, 40, 3)) > 60.0
+    hit = np.isfinite(dense_depth) & (np.asarray(dense_depth) < 5.5)
+    assert hit.sum() > 100
+    np.testing.assert_allclose(depth[hit], dense_depth[hit], atol=2e-3)
+    assert stats.padded_evaluations * 3 <= stats.dense_evaluations
+
+
+def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost(tiny_config, tiny_scene):
+    steps = dict(max_steps=20, eval_every=0)
+    plain = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, **steps))
+    with_grid = dataclasses.replace(
+        plain,
+        occupancy=dataclasses.replace(plain.occupancy, enabled=True, resolution=16, update_every=5),
+        train=dataclasses.replace(plain.train, run_dir=plain.train.run_dir + "_grid"),
+    )
+    a = fit(plain, dataset=tiny_scene, progress=False, write_renders=False)
+    b = fit(with_grid, dataset=tiny_scene, progress=False, write_renders=False)
+    for x, y in zip(
+        jax.tree_util.tree_leaves(eqx.filter(a.model, eqx.is_array)),
+        jax.tree_util.tree_leaves(eqx.filter(b.model, eqx.is_array)),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    render = b.metrics["render"]
+    assert render["skipping"] and 0 <= render["occupied_fraction"] <= 1
+    pixels = tiny_scene.test.height * tiny_scene.test.width
+    assert render["dense_evaluations_per_frame"] == pixels * 32
+    assert 0 < render["needed_evaluations_per_frame"] <= render["dense_evaluations_per_frame"]
+    assert a.metrics["render"]["evaluation_reduction"] <= 1.0
+    # Skipping may move the held-out PSNR only by what the skipped samples could add.
+    assert abs(b.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("occupancy.resolution=1", "occupancy.resolution"),
+        ("occupancy.decay=1.5", "occupancy.decay"),
+        ("occupancy.update_fraction=0", "occupancy.update_fraction"),
+        ("occupancy.stop_transmittance=1", "occupancy.stop_transmittance"),
+        ("occupancy.grid_size=3", "unknown key 'grid_size'"),
+    ],
+)
+def test_bad_occupancy_settings_are_refused(override, message):
+    with pytest.raises(ConfigError, match=message):
+        mx.load_config(None, [override])
