@@ -60,34 +60,34 @@ def format_table(per_view: list[dict], means: dict) -> str:
     return "\n".join(lines)
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Evaluates as `args` say and returns what was written to `metrics.json`."""
+def load_run(run_dir: Path, checkpoint: Path | None = None, data_dir: str | None = None):
+    """A training run's config, dataset and trained model.
+
+    **Arguments:**
+
+    - `run_dir`: the run's folder (holds `config.json` and `checkpoints/`).
+    - `checkpoint`: the checkpoint folder (default: the latest).
+    - `data_dir`: the dataset root, replacing the run's.
+
+    **Returns:**
+
+    `(config, dataset, model, step, checkpoint, key)`, `key` being the run's training key.
+    """
     import dataclasses
 
     import equinox as eqx
     import jax
-    from tqdm.auto import tqdm
 
     from mixnerf_eqx import ConfigError, build_model
     from mixnerf_eqx._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta
     from mixnerf_eqx._config import config_from_dict, init_key
-    from mixnerf_eqx._evaluate import evaluate
-    from mixnerf_eqx._skipping import RenderStats
-    from mixnerf_eqx._train import (
-        make_optimizer,
-        make_skipping,
-        occupancy_for_model,
-        render_summary,
-        write_view_renders,
-    )
+    from mixnerf_eqx._train import make_optimizer
     from mixnerf_eqx.data import load_dataset
-    from mixnerf_eqx.data._splits import evenly_spaced
-    from mixnerf_eqx.metrics import lpips_available
 
-    run_dir = args.run_dir
+    run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file():
         raise ConfigError(f"{run_dir} is not a training run: it has no config.json. Pass a run folder.")
-    checkpoint = args.checkpoint or latest_checkpoint(run_dir)
+    checkpoint = checkpoint or latest_checkpoint(run_dir)
     if checkpoint is None:
         raise ConfigError(f"{run_dir} holds no checkpoint yet; train first (python -m mixnerf_eqx.train).")
     if not (Path(checkpoint) / "state.eqx").is_file():
@@ -97,19 +97,36 @@ def run(args: argparse.Namespace) -> dict:
     except json.JSONDecodeError as error:
         raise ConfigError(f"{run_dir / 'config.json'}: not valid JSON ({error})") from None
     config = config_from_dict(config_dict, str(run_dir / "config.json"))
-    if args.data_dir is not None:
-        config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=args.data_dir))
-    use_skipping = args.skipping == "on" or (args.skipping == "auto" and config.occupancy.enabled)
-    chunk = args.chunk or (config.occupancy.chunk if use_skipping else config.train.render_chunk)
-
+    if data_dir is not None:
+        config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=data_dir))
     dataset = load_dataset(config.data)
     model_key, train_key = jax.random.split(init_key(config))
     model = build_model(
         config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background
     )
     opt_state = make_optimizer(config).init(eqx.filter(model, eqx.is_array))
-    model, _, step, _ = load_checkpoint(checkpoint, model=model, opt_state=opt_state, key=train_key)
+    model, _, step, train_key = load_checkpoint(checkpoint, model=model, opt_state=opt_state, key=train_key)
     step = read_checkpoint_meta(checkpoint).get("step", step)
+    return config, dataset, model, step, checkpoint, train_key
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Evaluates as `args` say and returns what was written to `metrics.json`."""
+    import dataclasses
+
+    import jax
+    from tqdm.auto import tqdm
+
+    from mixnerf_eqx._evaluate import evaluate
+    from mixnerf_eqx._skipping import RenderStats
+    from mixnerf_eqx._train import make_skipping, occupancy_for_model, render_summary, write_view_renders
+    from mixnerf_eqx.data._splits import evenly_spaced
+    from mixnerf_eqx.metrics import lpips_available
+
+    run_dir = args.run_dir
+    config, dataset, model, step, checkpoint, train_key = load_run(run_dir, args.checkpoint, args.data_dir)
+    use_skipping = args.skipping == "on" or (args.skipping == "auto" and config.occupancy.enabled)
+    chunk = args.chunk or (config.occupancy.chunk if use_skipping else config.train.render_chunk)
 
     view_ids = None
     if args.max_views > 0:

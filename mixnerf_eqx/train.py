@@ -71,6 +71,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     for name, value in test.items():
         print(f"  {name:10s} " + ("n/a (install the lpips extra)" if value is None else f"{value:.4f}"))
+    render = result.metrics["render"]
+    if render["skipping"]:
+        print(
+            f"rendering skipped empty space and finished rays: {render['field_evaluations_per_frame']:.0f} "
+            f"field evaluations per frame instead of {render['dense_evaluations_per_frame']:.0f} "
+            f"({render['evaluation_reduction']:.2f}x fewer; "
+            f"{render['occupied_fraction']:.1%} of the grid occupied)"
+        )
     print(f"metrics: {result.run_dir / 'metrics.json'}")
     print(f"renders: {result.run_dir / 'renders'}")
     print(f"checkpoints: {result.run_dir / 'checkpoints'}")

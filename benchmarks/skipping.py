@@ -1,0 +1,187 @@
+"""Empty-space skipping and early ray termination: field evaluations, render time and PSNR.
+
+Renders the test views of a trained run densely (every sample evaluated) and with the
+skipping renderer at a grid of settings (occupancy threshold, dilation, termination
+threshold), and reports per frame: field (MLP) evaluations made and needed, the reduction
+against dense, seconds, and the PSNR change. The target (issue: "at least 3x fewer MLP
+evaluations per rendered lego frame, with PSNR within 0.1 dB") is checked for the best
+setting that keeps the PSNR within 0.1 dB, and the shortfall is printed if it is missed.
+
+    python benchmarks/skipping.py RUN_DIR [--data-dir ../shared/data] [--max-views 4]
+
+The occupancy grid is rebuilt from the checkpoint (every cell evaluated once), its cost is
+reported as `grid_seconds`. Each setting renders the selected views twice and times the
+second pass, so that compiling the buffer sizes a setting needs is not timed.
+"""
+
+import argparse
+import dataclasses
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mixnerf_eqx._evaluate import render_views  # noqa: E402
+from mixnerf_eqx._skipping import RenderStats, Skipping  # noqa: E402
+from mixnerf_eqx._train import make_occupancy_grid, occupancy_for_model  # noqa: E402
+from mixnerf_eqx.data._splits import evenly_spaced  # noqa: E402
+from mixnerf_eqx.eval import load_run  # noqa: E402
+from mixnerf_eqx.metrics import psnr  # noqa: E402
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("run_dir", type=Path, help="a trained run (config.json, checkpoints/)")
+    parser.add_argument("--data-dir", default=None, help="dataset root (default: the run's)")
+    parser.add_argument("--max-views", type=int, default=4, help="test views, evenly spaced")
+    parser.add_argument("--chunk", type=int, default=16384, help="rays per chunk (both renderers)")
+    parser.add_argument("--resolution", type=int, default=128, help="occupancy grid cells per axis")
+    parser.add_argument("--box-radius", type=float, default=None, help="grid box (default: the run's)")
+    parser.add_argument("--thresholds", type=float, nargs="+", default=[0.01, 0.1, 0.5, 1.0, 2.0])
+    parser.add_argument("--dilations", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--stops", type=float, nargs="+", default=[0.0, 1e-4, 1e-3, 1e-2])
+    parser.add_argument("--segments", type=int, default=4, help="pieces per level for termination")
+    parser.add_argument("--out", type=Path, default=None, help="result JSON (default: results/skipping_*)")
+    return parser.parse_args(argv)
+
+
+def _render(model, views, dataset, chunk, skipping):
+    """Renders every view once; returns the images, seconds per frame and the counts."""
+    stats = RenderStats()
+    rgb = np.empty((views.num_views, views.height, views.width, 3), np.float32)
+    seconds = []
+    for index in range(views.num_views):
+        started = time.perf_counter()
+        out = render_views(
+            model, views.select([index]), dataset.near, dataset.far, chunk, skipping=skipping, stats=stats
+        )
+        seconds.append(time.perf_counter() - started)
+        rgb[index] = out[0][0]
+    return rgb, float(np.median(seconds)), stats
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    config, dataset, model, step, _, key = load_run(args.run_dir, data_dir=args.data_dir)
+    occupancy = dataclasses.replace(config.occupancy, resolution=args.resolution)
+    if args.box_radius is not None:
+        occupancy = dataclasses.replace(occupancy, box_radius=args.box_radius)
+    config = dataclasses.replace(config, occupancy=occupancy)
+    ids = evenly_spaced(dataset.test.num_views, min(args.max_views, dataset.test.num_views))
+    views = dataset.test.select(ids)
+    pixels = views.height * views.width
+
+    def score(rgb):
+        return float(np.mean([psnr(rgb[i], views.images[i]) for i in range(views.num_views)]))
+
+    render_views(model, views.select([0]), dataset.near, dataset.far, args.chunk)  # compile
+    dense_rgb, dense_seconds, dense_stats = _render(model, views, dataset, args.chunk, None)
+    dense_psnr = score(dense_rgb)
+    print(f"{dataset.name}, step {step}, {views.num_views} views of {views.height}x{views.width}")
+    print(
+        f"dense: {dense_stats.dense_evaluations / views.num_views:.0f} evaluations/frame, "
+        f"{dense_seconds:.3f} s/frame, PSNR {dense_psnr:.3f}"
+    )
+
+    rows = []
+    for threshold in args.thresholds:
+        for dilation in args.dilations:
+            grid_config = dataclasses.replace(
+                config,
+                occupancy=dataclasses.replace(
+                    config.occupancy, density_threshold=threshold, dilation=dilation
+                ),
+            )
+            started = time.perf_counter()
+            grid = occupancy_for_model(grid_config, dataset, model, key=jax.random.fold_in(key, step))
+            grid.density.block_until_ready()
+            grid_seconds = time.perf_counter() - started
+            for stop in args.stops:
+                skipping = Skipping(grid=grid, stop_transmittance=stop, segments=args.segments)
+                render_views(
+                    model, views.select([0]), dataset.near, dataset.far, args.chunk, skipping=skipping
+                )
+                rgb, seconds, stats = _render(model, views, dataset, args.chunk, skipping)
+                value = score(rgb)
+                row = {
+                    "threshold": threshold,
+                    "dilation": dilation,
+                    "stop_transmittance": stop,
+                    "occupied_fraction": float(grid.occupied_fraction()),
+                    "evaluations_per_frame": stats.padded_evaluations / views.num_views,
+                    "needed_per_frame": stats.field_evaluations / views.num_views,
+                    "reduction": stats.reduction,
+                    "seconds_per_frame": seconds,
+                    "speedup": dense_seconds / seconds,
+                    "psnr": value,
+                    "psnr_change": value - dense_psnr,
+                    "grid_seconds": grid_seconds,
+                }
+                rows.append(row)
+                print(
+                    f"threshold {threshold:<6g} dilation {dilation} stop {stop:<6g} "
+                    f"occupied {row['occupied_fraction']:6.1%}  "
+                    f"evals/frame {row['evaluations_per_frame']:>10.0f} "
+                    f"({row['reduction']:5.2f}x fewer)  {seconds:7.3f} s/frame ({row['speedup']:4.2f}x)  "
+                    f"PSNR {value:7.3f} ({row['psnr_change']:+.3f})",
+                    flush=True,
+                )
+    within = [r for r in rows if r["psnr_change"] >= -0.1]
+    best = max(within, key=lambda r: r["reduction"]) if within else None
+    if best is None:
+        verdict = "no setting stays within 0.1 dB"
+    elif best["reduction"] >= 3:
+        verdict = (
+            f"target met: {best['reduction']:.2f}x fewer evaluations, PSNR {best['psnr_change']:+.3f} dB"
+        )
+    else:
+        verdict = (
+            f"target missed: the best setting within 0.1 dB gives {best['reduction']:.2f}x fewer "
+            f"evaluations (target 3x, short by {3 - best['reduction']:.2f}x)"
+        )
+    print(verdict)
+    empty = make_occupancy_grid(config, dataset)
+    result = {
+        "run_dir": str(args.run_dir),
+        "scene": dataset.name,
+        "step": step,
+        "views": [int(i) for i in views.ids],
+        "pixels_per_frame": pixels,
+        "grid": {
+            "resolution": args.resolution,
+            "box_min": np.asarray(empty.box_min).tolist(),
+            "box_max": np.asarray(empty.box_max).tolist(),
+            "outside_occupied": empty.outside_occupied,
+        },
+        "dense": {
+            "evaluations_per_frame": dense_stats.dense_evaluations / views.num_views,
+            "seconds_per_frame": dense_seconds,
+            "psnr": dense_psnr,
+        },
+        "settings": rows,
+        "best_within_0.1dB": best,
+        "verdict": verdict,
+        "machine": {
+            "backend": jax.default_backend(),
+            "device": str(jax.devices()[0].device_kind),
+            "processor": platform.processor() or platform.machine(),
+            "jax": jax.__version__,
+        },
+    }
+    out = (
+        args.out
+        or Path(__file__).parent / "results" / f"skipping_{jax.default_backend()}_{dataset.name}.json"
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    print(f"written: {out}")
+
+
+if __name__ == "__main__":
+    main()
