@@ -1,6 +1,6 @@
 """What the runtime shape checks cost: the tracing first step and the compiled step, checks on and off.
 
-    python benchmarks/typecheck_overhead.py      # configs/builtin.toml, 20 timed steps per process
+    python benchmarks/typecheck_overhead.py      # configs/builtin.toml, 20 timed steps, 2 rounds
     python benchmarks/typecheck_overhead.py --steps 5 --config configs/blender4.toml model.remat=true
 
 `import mixnerf_eqx` puts the package's modules through `jaxtyping.install_import_hook(...,
@@ -15,19 +15,25 @@ with `JAXTYPING_DISABLE` removed from its environment. Each process
   raise jaxtyping's `TypeCheckError`; with them off it returns, silently, a wrongly shaped
   result. It repeats the call with `jaxtyping.config.jaxtyping_disable` set, the switch that
   `fit` flips from `train.typecheck`;
-- times the first call of the jitted training step of `make_train_step` (trace, compile and
-  one run: the only part in which the checks act), then `--steps` further calls one by one,
-  each to completion (`block_until_ready`), and reports their median: the compiled step;
-- afterwards traces and lowers a second, fresh step function (`.lower()`) and compiles it
-  (`.compile()`), timed apart, and hashes its StableHLO text: equal hashes on and off mean
-  that XLA compiled the same program. These run with JAX's caches of small helper functions
-  already warm, so they add up to a little less than the first call.
+- times the first call of the jitted training step of `make_train_step` (trace, lower,
+  compile and one run: the checks act in the trace alone), split into its phases by JAX's own
+  monitoring events, then `--steps` further calls one by one, each to completion
+  (`block_until_ready`), and reports their median: the compiled step;
+- afterwards traces and lowers fresh step functions five times (`.lower()`; "re-trace", the
+  median, with JAX's caches of small helper functions already warm) and hashes the StableHLO
+  text: equal hashes on and off mean that XLA is given the same program. The loss after the
+  last timed step is recorded too: the same seeds give the same numbers when the programs are
+  the same;
+- lowers the step once more with the training colours as uint8: `loss_fn`'s `target_rgb` is
+  annotated `Float`, so with the checks on the trace must stop with `TypeCheckError` (the
+  checks act inside the training step), while without them it lowers silently.
 
-The processes run one after another (with `--rounds` above one, alternately on first and off
-first) and the ratios on / off summarise them, each over the medians of its setting's
-processes. The printed table is markdown; the JSON, with every step's time and the machine,
-goes to `benchmarks/results/typecheck_overhead_<backend>.json` (`--out` to change it). The
-script exits with status 1 when the checks were not active as expected.
+The processes run one after another, `--rounds` of each setting (on first in even rounds, off
+first in odd ones), and the ratios on / off summarise them, each the median over the on
+processes divided by the median over the off ones. The printed table is markdown; the JSON,
+with every step's time and the machine, goes to
+`benchmarks/results/typecheck_overhead_<backend>.json` (`--out` to change it). The script
+exits with status 1 when the checks were not active as expected.
 """
 
 import argparse
@@ -45,13 +51,14 @@ MARKER = "TYPECHECK-OVERHEAD-RESULT "
 SETTINGS = {"on": "1", "off": "0"}
 DEFAULT_CONFIG = "configs/builtin.toml"
 RESULTS = Path(__file__).resolve().parent / "results"
+RETRACES = 5
 
 
 # --- one measurement, in a fresh process (`--one on|off`) ---
 
 
 def _probe(call) -> dict[str, Any]:
-    """What `call()` did: the exception it raised, or the shape and dtype of its result."""
+    """What `call()` did: the exception it raised, or what it returned (dtype and shape of an array)."""
     import jaxtyping
 
     try:
@@ -63,7 +70,26 @@ def _probe(call) -> dict[str, Any]:
             "type_check_error": isinstance(error, jaxtyping.TypeCheckError),
             "message": str(error).splitlines()[:2],
         }
-    return {"raised": None, "type_check_error": False, "returned": f"{out.dtype}{list(out.shape)}"}
+    returned = f"{out.dtype}{list(out.shape)}" if hasattr(out, "shape") else type(out).__name__
+    return {"raised": None, "type_check_error": False, "returned": returned}
+
+
+def _phases(events: list[tuple[str, float]]) -> dict[str, float | None]:
+    """Seconds of tracing, lowering and compiling among JAX's monitoring events.
+
+    Tracing takes the longest trace event (a jit traced inside another is part of it); the
+    others are summed.
+    """
+    names = {
+        "trace_s": "/jax/core/compile/jaxpr_trace_duration",
+        "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
+        "compile_s": "/jax/core/compile/backend_compile_duration",
+    }
+    phases: dict[str, float | None] = {}
+    for key, name in names.items():
+        seconds = [d for event, d in events if event == name]
+        phases[key] = None if not seconds else (max(seconds) if key == "trace_s" else sum(seconds))
+    return phases
 
 
 def measure(setting: str, config_path: str, overrides: list[str], steps: int) -> dict[str, Any]:
@@ -118,12 +144,21 @@ def measure(setting: str, config_path: str, overrides: list[str], steps: int) ->
     jax.block_until_ready((data, model, opt_state))
     setup_s = time.perf_counter() - start
 
+    # JAX reports how long each phase of a jit's first call took: tracing to a jaxpr (where
+    # the checks run), lowering to StableHLO, and XLA's compilation.
+    events: list[tuple[str, float]] = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, seconds, **_: events.append((event, seconds))
+    )
+
     initial_model, initial_opt_state = model, opt_state
     step_fn = make_train_step(config, optimizer)
     step = jnp.asarray(0, jnp.int32)
+    events.clear()
     start = time.perf_counter()
     model, opt_state, metrics = jax.block_until_ready(step_fn(model, opt_state, data, step, train_key))
     first_step_s = time.perf_counter() - start
+    first_phases = _phases(events)
 
     step_times = []
     for index in range(1, steps + 1):
@@ -133,15 +168,27 @@ def measure(setting: str, config_path: str, overrides: list[str], steps: int) ->
         step_times.append(time.perf_counter() - start)
     final_loss = float(metrics.terms.total)
 
-    fresh_fn = make_train_step(config, optimizer)
-    step = jnp.asarray(0, jnp.int32)
-    start = time.perf_counter()
-    lowered = fresh_fn.lower(initial_model, initial_opt_state, data, step, train_key)
-    trace_lower_s = time.perf_counter() - start
-    start = time.perf_counter()
-    lowered.compile()
-    compile_s = time.perf_counter() - start
+    # Fresh step functions (new closures, so nothing of the first is reused) are traced and
+    # lowered again, `RETRACES` times (one alone swings with the garbage collector), and the
+    # StableHLO of the last kept: the program XLA is given.
+    retrace_times = []
+    for _ in range(RETRACES):
+        fresh_fn = make_train_step(config, optimizer)
+        events.clear()
+        lowered = fresh_fn.lower(initial_model, initial_opt_state, data, jnp.asarray(0, jnp.int32), train_key)
+        retrace_times.append(_phases(events)["trace_s"])
+    retrace_s = None if None in retrace_times else statistics.median(retrace_times)
     stablehlo = lowered.as_text()
+
+    # The checks inside the step: colours as 8-bit integers (an easy mistake with images) reach
+    # `loss_fn`, whose `target_rgb` is annotated `Float[...]`. Checked, tracing stops there;
+    # unchecked, the integers are promoted and the step traces and lowers as if all were well.
+    uint8_data = eqx.tree_at(lambda d: d.rgb, data, (255 * data.rgb).astype(jnp.uint8))
+    probe_step = _probe(
+        lambda: make_train_step(config, optimizer).lower(
+            initial_model, initial_opt_state, uint8_data, jnp.asarray(0, jnp.int32), train_key
+        )
+    )
 
     m = config.model
     return {
@@ -151,11 +198,15 @@ def measure(setting: str, config_path: str, overrides: list[str], steps: int) ->
         "modules_imported_after_the_hook": later,
         "wrong_shape_call": probe,
         "wrong_shape_call_with_jaxtyping_disable": probe_disabled,
+        "uint8_colours_step_lowering": probe_step,
         "import_s": import_s,
         "setup_s": setup_s,
         "first_step_s": first_step_s,
-        "trace_lower_s": trace_lower_s,
-        "compile_s": compile_s,
+        "first_step_trace_s": first_phases["trace_s"],
+        "first_step_lower_s": first_phases["lower_s"],
+        "first_step_compile_s": first_phases["compile_s"],
+        "retrace_s": retrace_s,
+        "retrace_s_each": retrace_times,
         "step_s_median": statistics.median(step_times),
         "step_s_min": min(step_times),
         "step_s_mean": statistics.fmean(step_times),
@@ -205,8 +256,8 @@ def spawn(setting: str, round_index: int, args) -> dict[str, Any]:
 
 
 def _ratio(rows: list[dict], key: str) -> float | None:
-    on = [row[key] for row in rows if row["checks"] == "on" and "error" not in row]
-    off = [row[key] for row in rows if row["checks"] == "off" and "error" not in row]
+    on = [row[key] for row in rows if row["checks"] == "on" and row.get(key) is not None]
+    off = [row[key] for row in rows if row["checks"] == "off" and row.get(key) is not None]
     if not on or not off:
         return None
     return statistics.median(on) / statistics.median(off)
@@ -221,8 +272,9 @@ def _outcome(probe: dict | None) -> str:
 
 
 def checks_as_expected(row: dict) -> bool:
-    """On: imported with the hook, and the wrong call raises TypeCheckError (but not once
-    `jaxtyping_disable` is set). Off: no hook, and the wrong call does not raise."""
+    """On: imported with the hook; the wrong call raises TypeCheckError (but not once
+    `jaxtyping_disable` is set) and so does tracing the step with uint8 colours.
+    Off: no hook, and neither raises TypeCheckError."""
     if "error" in row:
         return False
     on = row["checks"] == "on"
@@ -230,41 +282,39 @@ def checks_as_expected(row: dict) -> bool:
         row["typecheck_on_import"] == on
         and row["wrong_shape_call"]["type_check_error"] == on
         and not row["wrong_shape_call_with_jaxtyping_disable"]["type_check_error"]
+        and row["uint8_colours_step_lowering"]["type_check_error"] == on
     )
 
 
+COLUMNS = (  # (header, key, scale, format)
+    ("import s", "import_s", 1.0, ".2f"),
+    ("setup s", "setup_s", 1.0, ".2f"),
+    ("first step s", "first_step_s", 1.0, ".2f"),
+    ("of which trace s", "first_step_trace_s", 1.0, ".2f"),
+    ("lower s", "first_step_lower_s", 1.0, ".2f"),
+    ("XLA compile s", "first_step_compile_s", 1.0, ".2f"),
+    ("re-trace s (median)", "retrace_s", 1.0, ".2f"),
+    ("compiled step ms (median)", "step_s_median", 1e3, ".1f"),
+    ("min ms", "step_s_min", 1e3, ".1f"),
+)
+
+
 def print_table(rows: list[dict]) -> None:
-    header = [
-        "checks",
-        "round",
-        "import s",
-        "setup s",
-        "first step s (trace + compile + run)",
-        "trace + lower s",
-        "compile s",
-        "compiled step ms (median)",
-        "min ms",
-        "wrong-shape call",
-        "same, jaxtyping_disable",
-    ]
+    header = ["checks", "round", *(c[0] for c in COLUMNS)]
+    header += ["wrong-shape call", "with jaxtyping_disable", "step, uint8 colours"]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     for row in rows:
+        cells = [row["checks"], str(row["round"])]
         if "error" in row:
-            cells = [row["checks"], str(row["round"]), row["error"]] + ["n/a"] * (len(header) - 3)
+            cells += [row["error"]] + ["n/a"] * (len(header) - 3)
         else:
-            cells = [
-                row["checks"],
-                str(row["round"]),
-                f"{row['import_s']:.2f}",
-                f"{row['setup_s']:.2f}",
-                f"{row['first_step_s']:.2f}",
-                f"{row['trace_lower_s']:.2f}",
-                f"{row['compile_s']:.2f}",
-                f"{1e3 * row['step_s_median']:.2f}",
-                f"{1e3 * row['step_s_min']:.2f}",
+            for _, key, scale, spec in COLUMNS:
+                cells.append("n/a" if row.get(key) is None else format(scale * row[key], spec))
+            cells += [
                 _outcome(row["wrong_shape_call"]),
                 _outcome(row["wrong_shape_call_with_jaxtyping_disable"]),
+                _outcome(row["uint8_colours_step_lowering"]),
             ]
         print("| " + " | ".join(cells) + " |")
 
@@ -273,7 +323,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--config", default=DEFAULT_CONFIG, help=f"TOML config (default {DEFAULT_CONFIG})")
     parser.add_argument("--steps", type=int, default=20, help="timed steps after the first (default 20)")
-    parser.add_argument("--rounds", type=int, default=1, help="processes per setting (default 1)")
+    parser.add_argument("--rounds", type=int, default=2, help="processes per setting (default 2)")
     parser.add_argument("--out", default=None, help="JSON path (default: see above)")
     parser.add_argument("--one", choices=sorted(SETTINGS), help=argparse.SUPPRESS)
     parser.add_argument("overrides", nargs="*", help="section.key=value")
@@ -302,9 +352,11 @@ def main() -> None:
     losses = {row["final_loss"] for row in good}
     summary = {
         "first_step_ratio_on_off": _ratio(rows, "first_step_s"),
-        "trace_lower_ratio_on_off": _ratio(rows, "trace_lower_s"),
-        "compile_ratio_on_off": _ratio(rows, "compile_s"),
+        "first_step_trace_ratio_on_off": _ratio(rows, "first_step_trace_s"),
+        "first_step_compile_ratio_on_off": _ratio(rows, "first_step_compile_s"),
+        "retrace_ratio_on_off": _ratio(rows, "retrace_s"),
         "compiled_step_ratio_on_off": _ratio(rows, "step_s_median"),
+        "compiled_step_min_ratio_on_off": _ratio(rows, "step_s_min"),
         "import_ratio_on_off": _ratio(rows, "import_s"),
         "same_stablehlo_on_off": len(hashes) == 1 if good else None,
         "same_final_loss_on_off": len(losses) == 1 if good else None,
@@ -327,17 +379,26 @@ def main() -> None:
     def show(value: float | None) -> str:
         return "n/a" if value is None else f"{value:.2f}"
 
-    print(f"first step, on / off:      {show(summary['first_step_ratio_on_off'])}")
-    print(f"  trace + lower, on / off: {show(summary['trace_lower_ratio_on_off'])}")
-    print(f"  compile, on / off:       {show(summary['compile_ratio_on_off'])}")
-    print(f"compiled step, on / off:   {show(summary['compiled_step_ratio_on_off'])}  (expected about 1.00)")
-    print(f"same StableHLO on and off: {summary['same_stablehlo_on_off']}")
-    print(f"same loss after {args.steps + 1} steps: {summary['same_final_loss_on_off']}")
-    print(f"checks active as expected: {summary['checks_as_expected']}")
+    lines = [
+        ("import, on / off", show(summary["import_ratio_on_off"])),
+        ("first step, on / off", show(summary["first_step_ratio_on_off"])),
+        ("  its trace, on / off", show(summary["first_step_trace_ratio_on_off"])),
+        ("  its XLA compile, on / off", show(summary["first_step_compile_ratio_on_off"])),
+        ("re-trace, on / off", show(summary["retrace_ratio_on_off"])),
+        ("compiled step, on / off", f"{show(summary['compiled_step_ratio_on_off'])}  (expected about 1.00)"),
+        ("  its fastest, on / off", show(summary["compiled_step_min_ratio_on_off"])),
+        ("same StableHLO on and off", summary["same_stablehlo_on_off"]),
+        (f"same loss after {args.steps + 1} steps", summary["same_final_loss_on_off"]),
+        ("checks active as expected", summary["checks_as_expected"]),
+    ]
+    for label, value in lines:
+        print(f"{label + ':':<30s}{value}")
     hooked = next((row["hooked_modules"] for row in good if row["checks"] == "on"), None)
     later = next((row["modules_imported_after_the_hook"] for row in good if row["checks"] == "on"), [])
     if hooked is not None:
-        print(f"modules under the hook: {len(hooked)}; package modules imported after it: {len(later)}")
+        names = ", ".join(name.removeprefix("mixnerf_eqx.") for name in later)
+        print(f"modules under the hook: {len(hooked)}; imported after it, so unchecked: {len(later)}")
+        print(f"  ({names})")
 
     backend = machine.get("backend", "unknown")
     out = Path(args.out) if args.out else RESULTS / f"typecheck_overhead_{backend}.json"
