@@ -18,6 +18,14 @@ with (
     if TYPECHECK_ON_IMPORT
     else _contextlib.nullcontext()
 ):
+    # Imported here, under the hook, so that their annotations are checked too: a module
+    # first imported after this block would not be.
+    from . import _checkpoint as _checkpoint
+    from . import _evaluate as _evaluate
+    from . import _schedule as _schedule
+    from . import _train as _train
+    from . import data as data
+    from . import metrics as metrics
     from ._config import Config as Config
     from ._config import ConfigError as ConfigError
     from ._config import build_model as build_model

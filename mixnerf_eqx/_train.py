@@ -309,6 +309,24 @@ def fit(
     bar = tqdm(total=max_steps, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
     step = logged_step = start
     skipped_total = skipped_streak = 0
+    pending = None
+
+    def check_skipped(done: int, skipped) -> None:
+        nonlocal skipped_total, skipped_streak
+        if bool(skipped):
+            skipped_total += 1
+            skipped_streak += 1
+            if skipped_streak >= config.train.max_nonfinite_steps:
+                last_good = latest_checkpoint(run_dir)
+                raise TrainingDiverged(
+                    f"step {done}: {skipped_streak} consecutive steps had a non-finite loss or "
+                    f"gradient and were not applied; stopping. The last good checkpoint is "
+                    f"{last_good or 'none (no checkpoint was written yet)'}; lower the learning "
+                    "rate or check the data, then resume from it."
+                )
+        else:
+            skipped_streak = 0
+
     timer = time.perf_counter()
     try:
         with open(log_path, "a") as log_file:
@@ -317,19 +335,20 @@ def fit(
                     model, opt_state, data, jnp.asarray(step, jnp.int32), train_key
                 )
                 done = step + 1
-                if bool(metrics.skipped):
-                    skipped_total += 1
-                    skipped_streak += 1
-                    if skipped_streak >= config.train.max_nonfinite_steps:
-                        last_good = latest_checkpoint(run_dir)
-                        raise TrainingDiverged(
-                            f"step {done}: {skipped_streak} consecutive steps had a non-finite loss or "
-                            f"gradient and were not applied; stopping. The last good checkpoint is "
-                            f"{last_good or 'none (no checkpoint was written yet)'}; lower the learning "
-                            "rate or check the data, then resume from it."
-                        )
-                else:
-                    skipped_streak = 0
+                # A step's skip flag is read once the next step is queued, so the host does not
+                # wait for the device between steps; a step that logs, evaluates or checkpoints
+                # is read at once, as those need its outcome.
+                if pending is not None:
+                    check_skipped(*pending)
+                pending = (done, metrics.skipped)
+                if (
+                    done % log_every == 0
+                    or done == last_step
+                    or (config.train.eval_every and done % config.train.eval_every == 0)
+                    or (config.train.checkpoint_every and done % config.train.checkpoint_every == 0)
+                ):
+                    check_skipped(*pending)
+                    pending = None
                 if done % log_every == 0 or done == last_step:
                     scalars = {"step": done, **_scalars(metrics), "skipped_steps": skipped_total}
                     elapsed = time.perf_counter() - timer
