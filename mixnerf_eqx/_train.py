@@ -197,14 +197,29 @@ _COSMETIC_TRAIN_KEYS = (
     "typecheck",
     "max_nonfinite_steps",
 )
+# Data keys that say where the files are, not which: a run may resume from another checkout.
+_COSMETIC_DATA_KEYS = ("data_dir", "dtu_mask_dir")
 # Occupancy-grid settings shape only what is rendered, never the trained parameters.
 _COSMETIC_SECTIONS = ("occupancy",)
 
 
 def _comparable(config_dict: dict[str, Any]) -> dict[str, Any]:
     train = {k: v for k, v in config_dict["train"].items() if k not in _COSMETIC_TRAIN_KEYS}
+    data = {k: v for k, v in config_dict["data"].items() if k not in _COSMETIC_DATA_KEYS}
     kept = {k: v for k, v in config_dict.items() if k not in _COSMETIC_SECTIONS}
-    return {**kept, "train": train, "name": None, "reproduces": None}
+    return {**kept, "train": train, "data": data, "name": None, "reproduces": None}
+
+
+def _truncate_log(log_path: Path, last_step: int) -> None:
+    """Drops the entries of `log_path` logged after step `last_step` (none if it is absent)."""
+    if not log_path.is_file():
+        return
+    lines = log_path.read_text().splitlines()
+    kept = [line for line in lines if line.strip() and json.loads(line).get("step", 0) <= last_step]
+    if len(kept) != len(lines):
+        temporary = log_path.with_suffix(".jsonl.tmp")
+        temporary.write_text("".join(line + "\n" for line in kept))
+        temporary.replace(log_path)
 
 
 @dataclasses.dataclass
@@ -296,6 +311,9 @@ def fit(
     grid_key = jax.random.fold_in(train_key, 0x0CC)
     history: list[dict[str, Any]] = []
     log_path = run_dir / "train_log.jsonl"
+    # Entries past the checkpoint belong to a run that ended without saving them (a crash or
+    # a kill): the resumed run redoes those steps, so the log keeps one entry per step.
+    _truncate_log(log_path, start)
     max_steps = config.train.max_steps
     last_step = max_steps if stop_after is None else min(max_steps, stop_after)
 

@@ -1,4 +1,7 @@
 import dataclasses
+import json
+import shutil
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -141,6 +144,20 @@ def test_resume_is_bit_identical(tiny_config, tiny_scene, tmp_path):
     assert straight.metrics["test"] == resumed.metrics["test"]
 
 
+def test_resume_drops_log_entries_past_the_checkpoint(tiny_config, tiny_scene):
+    config = _with_train(tiny_config, max_steps=12, checkpoint_every=4)
+    fit(config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=10, log_every=1)
+    # A run killed after step 10 leaves its newest checkpoint at step 8 and log entries to 10.
+    checkpoints = Path(config.train.run_dir) / "checkpoints"
+    for path in checkpoints.iterdir():
+        if read_checkpoint_meta(path)["step"] > 8:
+            shutil.rmtree(path)
+    fit(config, dataset=tiny_scene, progress=False, write_renders=False, log_every=1)
+    log_lines = (Path(config.train.run_dir) / "train_log.jsonl").read_text().splitlines()
+    log = [json.loads(line) for line in log_lines]
+    assert [entry["step"] for entry in log if "loss" in entry] == list(range(1, 13))
+
+
 def test_resume_refuses_changed_settings(tiny_config, tiny_scene):
     config = _with_train(tiny_config, max_steps=2)
     fit(config, dataset=tiny_scene, progress=False, write_renders=False)
@@ -149,6 +166,9 @@ def test_resume_refuses_changed_settings(tiny_config, tiny_scene):
         fit(changed, dataset=tiny_scene, progress=False, write_renders=False)
     with pytest.raises(ConfigError, match="already holds checkpoints"):
         fit(config, dataset=tiny_scene, progress=False, write_renders=False, resume=False)
+    # Where the data lives is not a setting: a run resumes from another checkout.
+    moved = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir="elsewhere/data"))
+    assert fit(moved, dataset=tiny_scene, progress=False, write_renders=False).metrics["step"] == 2
 
 
 def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, monkeypatch):
