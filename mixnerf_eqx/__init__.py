@@ -33,6 +33,9 @@ with (
     from ._encoding import frustum_gaussians as frustum_gaussians
     from ._encoding import integrated_positional_encoding as integrated_positional_encoding
     from ._encoding import positional_encoding as positional_encoding
+    from ._evaluate import evaluate as evaluate
+    from ._evaluate import render_rays as render_rays
+    from ._evaluate import render_views as render_views
     from ._field import AbstractField as AbstractField
     from ._field import FieldOutputs as FieldOutputs
     from ._field import MipNeRFField as MipNeRFField
@@ -41,6 +44,7 @@ with (
     from ._loss import loss_fn as loss_fn
     from ._mixture import AbstractMixture as AbstractMixture
     from ._mixture import LaplaceMixture as LaplaceMixture
+    from ._mixture.laplace import laplace_log_density as laplace_log_density
     from ._model import MixNeRF as MixNeRF
     from ._model import RenderOutputs as RenderOutputs
     from ._occupancy import OccupancyGrid as OccupancyGrid
@@ -62,3 +66,8 @@ with (
     from ._sampler import StratifiedSampler as StratifiedSampler
     from ._skipping import RenderStats as RenderStats
     from ._skipping import Skipping as Skipping
+    from ._train import TrainingDiverged as TrainingDiverged
+    from ._train import TrainResult as TrainResult
+    from ._train import fit as fit
+    from ._train import make_skipping as make_skipping
+    from ._train import occupancy_for_model as occupancy_for_model
