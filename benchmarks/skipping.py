@@ -5,7 +5,9 @@ skipping renderer at a grid of settings (occupancy threshold, dilation, terminat
 threshold), and reports per frame: field (MLP) evaluations made and needed, the reduction
 against dense, seconds, and the PSNR change. The target (issue: "at least 3x fewer MLP
 evaluations per rendered lego frame, with PSNR within 0.1 dB") is checked for the best
-setting that keeps the PSNR within 0.1 dB, and the shortfall is printed if it is missed.
+setting that loses at most 0.1 dB, and the shortfall is printed if it is missed; the best
+setting whose PSNR stays within +-0.1 dB of dense (the same image, not a less foggy one) is
+printed beside it.
 
     python benchmarks/skipping.py RUN_DIR [--data-dir ../shared/data] [--max-views 4]
 
@@ -145,6 +147,18 @@ def main(argv=None):
             f"target missed: the best setting within 0.1 dB gives {best['reduction']:.2f}x fewer "
             f"evaluations (target 3x, short by {3 - best['reduction']:.2f}x)"
         )
+    # The target reads "no more than 0.1 dB lower". Skipping a hazy model's low density can
+    # also raise the PSNR (less fog in front of the background): then the image is not the
+    # dense one. The stricter reading, |change| <= 0.1 dB, is reported beside it.
+    same_image = [r for r in rows if abs(r["psnr_change"]) <= 0.1]
+    best_same = max(same_image, key=lambda r: r["reduction"]) if same_image else None
+    if best_same is None:
+        verdict += "; no setting keeps the PSNR within +-0.1 dB of dense"
+    else:
+        verdict += (
+            f"; within +-0.1 dB of dense: {best_same['reduction']:.2f}x fewer "
+            f"(PSNR {best_same['psnr_change']:+.3f} dB)"
+        )
     print(verdict)
     empty = make_occupancy_grid(config, dataset)
     result = {
@@ -166,6 +180,7 @@ def main(argv=None):
         },
         "settings": rows,
         "best_within_0.1dB": best,
+        "best_within_plus_minus_0.1dB": best_same,
         "verdict": verdict,
         "machine": {
             "backend": jax.default_backend(),
