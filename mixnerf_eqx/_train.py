@@ -211,11 +211,19 @@ def _comparable(config_dict: dict[str, Any]) -> dict[str, Any]:
 
 
 def _truncate_log(log_path: Path, last_step: int) -> None:
-    """Drops the entries of `log_path` logged after step `last_step` (none if it is absent)."""
+    """Drops the entries of `log_path` logged after step `last_step` (none if it is absent),
+    and a last line cut short by a kill."""
     if not log_path.is_file():
         return
+
+    def keep(line: str) -> bool:
+        try:
+            return json.loads(line).get("step", 0) <= last_step
+        except json.JSONDecodeError:
+            return False
+
     lines = log_path.read_text().splitlines()
-    kept = [line for line in lines if line.strip() and json.loads(line).get("step", 0) <= last_step]
+    kept = [line for line in lines if keep(line)]
     if len(kept) != len(lines):
         temporary = log_path.with_suffix(".jsonl.tmp")
         temporary.write_text("".join(line + "\n" for line in kept))

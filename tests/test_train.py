@@ -152,6 +152,9 @@ def test_resume_drops_log_entries_past_the_checkpoint(tiny_config, tiny_scene):
     for path in checkpoints.iterdir():
         if read_checkpoint_meta(path)["step"] > 8:
             shutil.rmtree(path)
+    # ...and possibly a last entry cut short mid-write.
+    with open(Path(config.train.run_dir) / "train_log.jsonl", "a") as log_file:
+        log_file.write('{"step": 11, "lo')
     fit(config, dataset=tiny_scene, progress=False, write_renders=False, log_every=1)
     log_lines = (Path(config.train.run_dir) / "train_log.jsonl").read_text().splitlines()
     log = [json.loads(line) for line in log_lines]
