@@ -28,12 +28,15 @@ renderer that skips empty space and finished rays, with a grid built from the tr
 and the config's `[occupancy]` settings (`--set occupancy.density_threshold=...` changes
 them), and its PSNR, seconds and evaluations per frame are reported beside the dense ones.
 
-Outputs: `sample_count_<tag>.json` in `--out` (default benchmarks/results; tag: the JAX
-backend) and a printed table. Sample-count overrides come last: they win over `--set`.
+Outputs: `sample_count_<tag>.jsonl` in `--out` (default benchmarks/results; tag: the JAX
+backend), one line per finished run, appended as the study goes (so a stopped study keeps
+its finished runs); `sample_count_<tag>.json` with every run and the machine at the end; a
+printed table. Sample-count overrides come last: they win over `--set`.
 """
 
 import argparse
 import dataclasses
+import json
 import statistics
 import time
 from pathlib import Path
@@ -211,8 +214,13 @@ def run_one(args, scene, variant, samples: int, cache: DatasetCache) -> dict[str
     compile_s = run.compile()
     status, train_s = "ok", 0.0
     try:
-        for _ in range(args.steps):
+        for step in range(1, args.steps + 1):
             train_s += run.advance()
+            if step % max(args.steps // 5, 1) == 0 and step < args.steps:
+                print(
+                    f"[{scene.name} {variant.name} {samples}+{samples}] step {step}: {train_s:.1f} s",
+                    flush=True,
+                )
     except TrainingDiverged as error:
         status = f"diverged: {error}"
     chunk = args.chunk or config.train.render_chunk
@@ -270,12 +278,16 @@ def main() -> None:
     machine = machine_info()
     print(f"on {machine['device_kind']} ({machine['backend']}); LPIPS available: {lpips_available()}")
     cache = DatasetCache(args.eval_downscale)
-    rows = [
-        run_one(args, scene, variant, samples, cache)
-        for scene in args.scene
-        for samples in args.samples
-        for variant in args.variant
-    ]
+    jsonl = Path(args.out) / f"sample_count_{tag}.jsonl"
+    jsonl.parent.mkdir(parents=True, exist_ok=True)
+    print(f"finished runs are appended to {jsonl}")
+    rows = []
+    for scene in args.scene:
+        for samples in args.samples:
+            for variant in args.variant:
+                rows.append(run_one(args, scene, variant, samples, cache))
+                with open(jsonl, "a") as handle:
+                    handle.write(json.dumps({"machine": machine, **rows[-1]}) + "\n")
     header = (
         "scene",
         "model",

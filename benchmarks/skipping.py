@@ -12,7 +12,11 @@ printed beside it.
     python benchmarks/skipping.py RUN_DIR [--data-dir ../shared/data] [--max-views 4]
 
 The occupancy grid is rebuilt from the checkpoint (every cell evaluated once), its cost is
-reported as `grid_seconds`. Each setting renders the selected views twice and times the
+reported as `grid_seconds`. The `--thresholds` rows use each threshold as given; the
+`--calibrate` rows (one per tolerance) let `mixnerf_eqx.calibrate_threshold` choose it on
+`--calibrate-rays` training pixels, starting from the smallest of `--thresholds`, as
+`fit` and `python -m mixnerf_eqx.eval` do with `occupancy.calibrate` on; their
+`grid_seconds` include the calibration. Each setting renders the selected views twice and times the
 second pass, so that compiling the buffer sizes a setting needs is not timed.
 """
 
@@ -49,6 +53,15 @@ def parse_args(argv=None):
     parser.add_argument("--dilations", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--stops", type=float, nargs="+", default=[0.0, 1e-4, 1e-3, 1e-2])
     parser.add_argument("--segments", type=int, default=4, help="pieces per level for termination")
+    parser.add_argument(
+        "--calibrate",
+        type=float,
+        nargs="*",
+        default=[0.1],
+        metavar="TOLERANCE_DB",
+        help="also calibrate the threshold to these PSNR-drop bounds (none: skip)",
+    )
+    parser.add_argument("--calibrate-rays", type=int, default=4096, help="training pixels for calibrating")
     parser.add_argument("--out", type=Path, default=None, help="result JSON (default: results/skipping_*)")
     return parser.parse_args(argv)
 
@@ -92,12 +105,21 @@ def main(argv=None):
     )
 
     rows = []
-    for threshold in args.thresholds:
+    # (threshold, calibration tolerance or None): fixed thresholds first, then calibrated ones.
+    grids = [(threshold, None) for threshold in args.thresholds]
+    grids += [(min(args.thresholds), tolerance) for tolerance in args.calibrate]
+    for threshold, tolerance in grids:
         for dilation in args.dilations:
             grid_config = dataclasses.replace(
                 config,
                 occupancy=dataclasses.replace(
-                    config.occupancy, density_threshold=threshold, dilation=dilation
+                    config.occupancy,
+                    density_threshold=threshold,
+                    dilation=dilation,
+                    calibrate=tolerance is not None,
+                    calibrate_tolerance_db=0.0 if tolerance is None else tolerance,
+                    calibrate_rays=args.calibrate_rays,
+                    stop_transmittance=min(args.stops),
                 ),
             )
             started = time.perf_counter()
@@ -112,7 +134,8 @@ def main(argv=None):
                 rgb, seconds, stats = _render(model, views, dataset, args.chunk, skipping)
                 value = score(rgb)
                 row = {
-                    "threshold": threshold,
+                    "threshold": grid.threshold,
+                    "calibrated_to_db": tolerance,
                     "dilation": dilation,
                     "stop_transmittance": stop,
                     "occupied_fraction": float(grid.occupied_fraction()),
@@ -126,8 +149,9 @@ def main(argv=None):
                     "grid_seconds": grid_seconds,
                 }
                 rows.append(row)
+                how = "" if tolerance is None else f" (calibrated to {tolerance:g} dB)"
                 print(
-                    f"threshold {threshold:<6g} dilation {dilation} stop {stop:<6g} "
+                    f"threshold {grid.threshold:<6g}{how} dilation {dilation} stop {stop:<6g} "
                     f"occupied {row['occupied_fraction']:6.1%}  "
                     f"evals/frame {row['evaluations_per_frame']:>10.0f} "
                     f"({row['reduction']:5.2f}x fewer)  {seconds:7.3f} s/frame ({row['speedup']:4.2f}x)  "

@@ -20,12 +20,16 @@ with (
 ):
     # Imported here, under the hook, so that their annotations are checked too: a module
     # first imported after this block would not be.
+    from . import _calibrate as _calibrate
     from . import _checkpoint as _checkpoint
     from . import _evaluate as _evaluate
     from . import _schedule as _schedule
     from . import _train as _train
     from . import data as data
     from . import metrics as metrics
+    from ._calibrate import ThresholdChoice as ThresholdChoice
+    from ._calibrate import calibrate_threshold as calibrate_threshold
+    from ._calibrate import calibration_rays as calibration_rays
     from ._config import Config as Config
     from ._config import ConfigError as ConfigError
     from ._config import build_model as build_model

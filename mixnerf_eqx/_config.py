@@ -127,7 +127,13 @@ class OccupancyConfig:
     box_radius: float = (
         0.0  # > 0: the grid spans [-r, r]^3 and nothing lies outside; 0: the training frusta's box
     )
-    density_threshold: float = 0.01  # a cell is occupied where its density exceeds this
+    density_threshold: float = 0.01  # a cell is occupied where its density exceeds this (with
+    # calibrate: the smallest threshold tried)
+    calibrate: bool = True  # for a trained model's renders, raise the threshold as far as the
+    # calibration rays allow (mixnerf_eqx._calibrate)
+    calibrate_tolerance_db: float = 0.1  # largest bound on the PSNR lost on the calibration rays
+    calibrate_rays: int = 4096  # calibration rays: random pixels of the training views
+    calibrate_doublings: int = 14  # the threshold tried goes up to density_threshold * 2^this
     dilation: int = 1  # occupied cells also mark this many neighbouring cells on every side
     decay: float = 0.95  # each update keeps max(decay * old, new) per cell
     update_every: int = 16  # training steps between grid updates
@@ -187,6 +193,14 @@ def validate(config: Config) -> None:
         problems.append("occupancy.density_threshold must be >= 0")
     if occupancy.dilation < 0:
         problems.append("occupancy.dilation must be >= 0")
+    if occupancy.calibrate and occupancy.density_threshold <= 0:
+        problems.append(
+            "occupancy.calibrate needs occupancy.density_threshold > 0 (the first threshold tried)"
+        )
+    if occupancy.calibrate_tolerance_db < 0 or occupancy.calibrate_doublings < 0:
+        problems.append("occupancy.calibrate_tolerance_db and occupancy.calibrate_doublings must be >= 0")
+    if occupancy.calibrate_rays < 1:
+        problems.append("occupancy.calibrate_rays must be positive")
     if not 0 <= occupancy.decay <= 1:
         problems.append("occupancy.decay must lie in [0, 1]")
     if occupancy.update_every < 1:

@@ -40,8 +40,10 @@ def render_rays(
 ):
     """Deterministically renders any number of rays, `chunk` rays at a time.
 
-    Every call of the compiled renderer sees exactly `chunk` rays (the last chunk is padded),
-    so it compiles once, and device memory is bounded by the chunk, not by the image.
+    Every call of the compiled renderer sees exactly `chunk` rays (the ray table is padded
+    once to a whole number of chunks), so it compiles once, and device memory is bounded by
+    the chunk, not by the image. The dense renderer queues the next chunk before it copies
+    the previous one back, so the device does not wait for the host between chunks.
 
     **Arguments:**
 
@@ -56,37 +58,53 @@ def render_rays(
 
     `(rgb, depth, acc)` as numpy arrays with `rays.batch_shape` in front.
     """
+    if chunk < 1:
+        raise ValueError(f"chunk must be at least 1, got {chunk}")
     batch_shape = rays.batch_shape
     flat = rays.reshape(-1)
     count = flat.origins.shape[0]
+    num_chunks = -(-count // chunk)
+    pad = num_chunks * chunk - count
+    if pad:
+        # Padding rays repeat the last ray; their outputs are dropped.
+        flat = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), flat)
+    chunks = flat.reshape(num_chunks, chunk)
     rgb = np.empty((count, 3), np.float32)
     depth = np.empty((count,), np.float32)
     acc = np.empty((count,), np.float32)
-    for start in range(0, count, chunk):
-        stop = min(start + chunk, count)
-        piece = flat[start:stop]
-        if stop - start < chunk:
-            pad = chunk - (stop - start)
-            piece = jax.tree_util.tree_map(
-                lambda x, pad=pad: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), piece
-            )
+
+    def store(index: int, outputs) -> None:
+        start, stop = index * chunk, min((index + 1) * chunk, count)
+        out_rgb, out_depth, out_acc = jax.device_get(outputs)
+        rgb[start:stop] = out_rgb[: stop - start]
+        depth[start:stop] = out_depth[: stop - start]
+        acc[start:stop] = out_acc[: stop - start]
+
+    pending = None
+    for index in range(num_chunks):
+        real = min(chunk, count - index * chunk)
+        piece = chunks[index]
         if skipping is None:
-            out_rgb, out_depth, out_acc = _render_chunk(model, piece)
+            outputs = _render_chunk(model, piece)
             if stats is not None:
                 samples = model.coarse_sampler.num_samples + model.fine_sampler.num_samples
-                stats.rays += stop - start
-                stats.dense_evaluations += (stop - start) * samples
-                stats.field_evaluations += (stop - start) * samples
+                stats.rays += real
+                stats.dense_evaluations += real * samples
+                stats.field_evaluations += real * samples
                 stats.padded_evaluations += chunk * samples
         else:
-            valid = jnp.arange(chunk) < stop - start
+            valid = jnp.arange(chunk) < real
             fine = render_chunk_skipping(
                 model, piece, valid, skipping, RenderStats() if stats is None else stats
             )
-            out_rgb, out_depth, out_acc = fine.rgb, fine.depth, fine.acc
-        rgb[start:stop] = np.asarray(out_rgb)[: stop - start]
-        depth[start:stop] = np.asarray(out_depth)[: stop - start]
-        acc[start:stop] = np.asarray(out_acc)[: stop - start]
+            outputs = (fine.rgb, fine.depth, fine.acc)
+        # JAX dispatches asynchronously: this chunk is queued before the previous one is
+        # copied back, which is where the host waits.
+        if pending is not None:
+            store(*pending)
+        pending = (index, outputs)
+    if pending is not None:
+        store(*pending)
     return rgb.reshape(*batch_shape, 3), depth.reshape(batch_shape), acc.reshape(batch_shape)
 
 

@@ -15,6 +15,7 @@ import optax
 from jaxtyping import Array, Bool, Float, Int
 from tqdm.auto import tqdm
 
+from ._calibrate import ThresholdChoice, calibrate_threshold, calibration_rays
 from ._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
 from ._config import Config, ConfigError, build_model, config_to_dict, init_key
 from ._custom_types import PRNGKey
@@ -182,9 +183,33 @@ _update_occupancy = eqx.filter_jit(update_occupancy)
 _refresh_occupancy = eqx.filter_jit(refresh_occupancy)
 
 
+def calibrate_grid(
+    config: Config, dataset: Dataset, model: MixNeRF, grid: OccupancyGrid, *, key: PRNGKey
+) -> tuple[OccupancyGrid, ThresholdChoice | None]:
+    """`grid` with the threshold `calibrate_threshold` chooses on `config.occupancy.calibrate_rays`
+    training pixels, or unchanged (and `None`) when `config.occupancy.calibrate` is off."""
+    occupancy = config.occupancy
+    if not occupancy.calibrate:
+        return grid, None
+    rays, colours = calibration_rays(dataset, occupancy.calibrate_rays, key=key)
+    return calibrate_threshold(
+        model,
+        grid,
+        make_skipping(config, grid),
+        rays,
+        colours,
+        tolerance_db=occupancy.calibrate_tolerance_db,
+        doublings=occupancy.calibrate_doublings,
+        chunk=min(occupancy.chunk, occupancy.calibrate_rays),
+    )
+
+
 def occupancy_for_model(config: Config, dataset: Dataset, model: MixNeRF, *, key: PRNGKey) -> OccupancyGrid:
-    """A grid of `model`'s density evaluated in every cell (for rendering a trained model)."""
-    return _refresh_occupancy(make_occupancy_grid(config, dataset), model.field, key=key)
+    """A grid of `model`'s density evaluated in every cell (for rendering a trained model),
+    with its threshold calibrated when `config.occupancy.calibrate` is on."""
+    refresh_key, calibrate_key = jax.random.split(key)
+    grid = _refresh_occupancy(make_occupancy_grid(config, dataset), model.field, key=refresh_key)
+    return calibrate_grid(config, dataset, model, grid, key=calibrate_key)[0]
 
 
 # Train-section keys that do not change the trajectory: a run may resume with them changed.
@@ -444,9 +469,12 @@ def fit(
         if write_renders:
             write_view_renders(renders, dataset, index, entry["view"], outputs)
 
-    skipping = None
+    skipping = choice = None
     if grid is not None:
         grid = _refresh_occupancy(grid, model.field, key=jax.random.fold_in(grid_key, step + 1))
+        grid, choice = calibrate_grid(
+            config, dataset, model, grid, key=jax.random.fold_in(grid_key, step + 2)
+        )
         skipping = make_skipping(config, grid)
     stats = RenderStats()
     render_timer = time.perf_counter()
@@ -464,7 +492,7 @@ def fit(
         "scene": dataset.name,
         "test": means,
         "per_view": per_view,
-        "render": render_summary(stats, time.perf_counter() - render_timer, len(per_view), grid),
+        "render": render_summary(stats, time.perf_counter() - render_timer, len(per_view), grid, choice),
         "config": config_dict,
     }
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
@@ -472,12 +500,19 @@ def fit(
 
 
 def render_summary(
-    stats: RenderStats, seconds: float, num_views: int, grid: OccupancyGrid | None
+    stats: RenderStats,
+    seconds: float,
+    num_views: int,
+    grid: OccupancyGrid | None,
+    choice: ThresholdChoice | None = None,
 ) -> dict[str, Any]:
-    """Per-frame render cost: field evaluations made and needed, and seconds (scoring included)."""
+    """Per-frame render cost: field evaluations made and needed, and seconds (scoring included),
+    with the grid's threshold and, if it was calibrated, how."""
     frames = max(num_views, 1)
     return {
         "skipping": grid is not None,
+        "density_threshold": None if grid is None else grid.threshold,
+        "calibration": None if choice is None else dataclasses.asdict(choice),
         "occupied_fraction": None if grid is None else float(grid.occupied_fraction()),
         "dense_evaluations_per_frame": stats.dense_evaluations / frames,
         "field_evaluations_per_frame": stats.padded_evaluations / frames,

@@ -119,7 +119,14 @@ def run(args: argparse.Namespace) -> dict:
 
     from mixnerf_eqx._evaluate import evaluate
     from mixnerf_eqx._skipping import RenderStats
-    from mixnerf_eqx._train import make_skipping, occupancy_for_model, render_summary, write_view_renders
+    from mixnerf_eqx._train import (
+        _refresh_occupancy,
+        calibrate_grid,
+        make_occupancy_grid,
+        make_skipping,
+        render_summary,
+        write_view_renders,
+    )
     from mixnerf_eqx.data._splits import evenly_spaced
     from mixnerf_eqx.metrics import lpips_available
 
@@ -145,9 +152,11 @@ def run(args: argparse.Namespace) -> dict:
         bar.update(1)
 
     started = time.perf_counter()
-    grid = skipping = None
+    grid = skipping = choice = None
     if use_skipping:
-        grid = occupancy_for_model(config, dataset, model, key=jax.random.fold_in(train_key, step))
+        refresh_key, calibrate_key = jax.random.split(jax.random.fold_in(train_key, step))
+        grid = _refresh_occupancy(make_occupancy_grid(config, dataset), model.field, key=refresh_key)
+        grid, choice = calibrate_grid(config, dataset, model, grid, key=calibrate_key)
         skipping = make_skipping(config, grid)
     grid_seconds = time.perf_counter() - started
     stats = RenderStats()
@@ -164,7 +173,7 @@ def run(args: argparse.Namespace) -> dict:
     finally:
         bar.close()
     seconds = time.perf_counter() - started
-    render = render_summary(stats, seconds - grid_seconds, num_views, grid)
+    render = render_summary(stats, seconds - grid_seconds, num_views, grid, choice)
     render["grid_seconds"] = grid_seconds
     lpips_note = "computed"
     if args.no_lpips:
@@ -187,8 +196,12 @@ def run(args: argparse.Namespace) -> dict:
     print(format_table(per_view, means))
     print(f"\n{dataset.name}, step {step}, {num_views} views in {seconds:.1f} s; LPIPS {lpips_note}")
     if grid is not None:
+        how = "calibrated" if choice is not None else "from the config"
+        if choice is not None and not choice.within_tolerance:
+            how += f", no threshold kept the bound within {choice.tolerance_db} dB"
         print(
-            f"skipping: {render['occupied_fraction']:.1%} of the grid occupied, "
+            f"skipping: density threshold {grid.threshold:.4g} ({how}), "
+            f"{render['occupied_fraction']:.1%} of the grid occupied, "
             f"{render['field_evaluations_per_frame']:.0f} field evaluations per frame instead of "
             f"{render['dense_evaluations_per_frame']:.0f} ({render['evaluation_reduction']:.2f}x fewer)"
         )

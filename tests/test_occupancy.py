@@ -15,6 +15,7 @@ from jaxtyping import Array, Float
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError
+from mixnerf_eqx._calibrate import psnr_drop_bound
 from mixnerf_eqx._evaluate import render_rays
 from mixnerf_eqx._occupancy import (
     empty_grid,
@@ -244,6 +245,11 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     assert a.metrics["render"]["evaluation_reduction"] <= 1.0
     # Skipping may move the held-out PSNR only by what the skipped samples could add.
     assert abs(b.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
+    # The threshold was calibrated on training pixels and within its tolerance there.
+    calibration = render["calibration"]
+    assert calibration["trials"] and calibration["tolerance_db"] == 0.1
+    assert render["density_threshold"] == calibration["threshold"]
+    assert calibration["within_tolerance"] == (calibration["bound_db"] <= 0.1)
 
 
 @pytest.mark.parametrize(
@@ -254,8 +260,103 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
         ("occupancy.update_fraction=0", "occupancy.update_fraction"),
         ("occupancy.stop_transmittance=1", "occupancy.stop_transmittance"),
         ("occupancy.grid_size=3", "unknown key 'grid_size'"),
+        ("occupancy.density_threshold=0", "occupancy.calibrate needs"),
+        ("occupancy.calibrate_rays=0", "occupancy.calibrate_rays"),
+        ("occupancy.calibrate_tolerance_db=-1", "occupancy.calibrate_tolerance_db"),
     ],
 )
 def test_bad_occupancy_settings_are_refused(override, message):
     with pytest.raises(ConfigError, match=message):
         mx.load_config(None, [override])
+
+
+# --- Calibrating the density threshold -------------------------------------------------
+
+
+def _psnr64(a, b):
+    return -10 * np.log10(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+
+
+def test_psnr_drop_bound_bounds_the_drop_and_is_tight_along_the_error():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        target = rng.uniform(size=(50, 3))
+        dense = np.clip(target + rng.normal(scale=rng.uniform(0.01, 0.2), size=target.shape), 0, 1)
+        skipped = dense + rng.normal(scale=rng.uniform(1e-4, 0.1), size=target.shape)
+        drop = _psnr64(dense, target) - _psnr64(skipped, target)
+        assert drop <= psnr_drop_bound(dense, skipped, target) + 1e-9
+    # A change along the error, skipped = dense + c (dense - target), loses exactly 20 log10(1 + c).
+    target = rng.uniform(size=(50, 3))
+    dense = target + 0.05 * rng.normal(size=target.shape)
+    for c in (0.01, 0.3, 2.0):
+        skipped = dense + c * (dense - target)
+        expected = 20 * np.log10(1 + c)
+        assert psnr_drop_bound(dense, skipped, target) == pytest.approx(expected, rel=1e-9)
+        assert _psnr64(dense, target) - _psnr64(skipped, target) == pytest.approx(expected, rel=1e-9)
+    assert psnr_drop_bound(dense, dense, target) == 0.0
+    assert psnr_drop_bound(target, dense, target) == np.inf
+
+
+class FoggySphereField(SphereField):
+    """The sphere inside a uniform fog of density `fog` (in the whole box)."""
+
+    fog: float = eqx.field(static=True, default=0.02)
+
+    def density(self, mean, cov):
+        inside_box = jnp.all(jnp.abs(mean) < 1.5)
+        return jnp.where(inside_box, jnp.maximum(super().density(mean, cov), self.fog), 0.0)
+
+
+def _calibrate_foggy_sphere(tolerance_db):
+    foggy = FoggySphereField(centre=jnp.array([0.1, -0.05, 0.0]), inside=jnp.asarray(20.0), radius=0.6)
+    model = _sphere_model(foggy, samples=48)
+    rays = _camera_rays(size=24)
+    # The truth has no fog: the dense render of the foggy model is off by the fog's colour.
+    target = render_rays(_sphere_model(_sphere(), samples=48), rays, 576)[0]
+    grid = empty_grid((-1.5,) * 3, (1.5,) * 3, resolution=32, threshold=1e-3, outside_occupied=False)
+    grid = refresh_occupancy(grid, foggy, key=jax.random.key(0))
+    skipping = Skipping(grid, 1e-4, 4)
+    chosen, choice = mx.calibrate_threshold(
+        model, grid, skipping, rays, target, tolerance_db=tolerance_db, doublings=16, chunk=576
+    )
+    dense = render_rays(model, rays, 576)[0]
+
+    def bound(threshold):
+        candidate = dataclasses.replace(grid, threshold=threshold)
+        rgb = render_rays(model, rays, 576, skipping=dataclasses.replace(skipping, grid=candidate))[0]
+        return psnr_drop_bound(dense, rgb, target)
+
+    return chosen, choice, bound
+
+
+def test_calibration_keeps_the_fog_for_a_tight_tolerance_and_picks_the_largest_threshold():
+    chosen, choice, bound = _calibrate_foggy_sphere(tolerance_db=0.5)
+    assert choice.within_tolerance and chosen.threshold == choice.threshold
+    # Removing the fog moves the image all the way to the truth: a 6 dB bound. So the chosen
+    # threshold stays below the fog's density, and the next candidate up is above it.
+    assert 0.01 < choice.threshold < 0.02 <= 2 * choice.threshold
+    assert bound(choice.threshold) == pytest.approx(choice.bound_db, abs=1e-3)
+    assert choice.bound_db <= 0.5 < bound(2 * choice.threshold)
+    assert len(choice.trials) <= 6  # bisection over 17 candidates
+
+
+def test_calibration_skips_the_fog_but_not_the_sphere_for_a_loose_tolerance():
+    chosen, choice, bound = _calibrate_foggy_sphere(tolerance_db=7.0)
+    assert choice.within_tolerance
+    assert 0.02 < choice.threshold < 20.0
+    assert bound(choice.threshold) <= 7.0 < bound(32.0)  # skipping the sphere too
+    assert choice.reduction > 2.0
+
+
+def test_calibration_rays_are_distinct_training_pixels(tiny_scene):
+    rays, colours = mx.calibration_rays(tiny_scene, 300, key=jax.random.key(3))
+    views = tiny_scene.train
+    assert rays.batch_shape == (300,) and colours.shape == (300, 3)
+    all_rays = mx.data.rays_for_views(views, tiny_scene.near, tiny_scene.far).reshape(-1)
+    table = np.concatenate([np.asarray(all_rays.origins), np.asarray(all_rays.directions)], axis=-1)
+    picked = np.concatenate([np.asarray(rays.origins), np.asarray(rays.directions)], axis=-1)
+    index = [int(np.flatnonzero(np.all(table == row, axis=-1))[0]) for row in picked]
+    assert len(set(index)) == 300
+    np.testing.assert_array_equal(colours, np.asarray(views.images, np.float32).reshape(-1, 3)[index])
+    with pytest.raises(ValueError, match="num_rays"):
+        mx.calibration_rays(tiny_scene, 0, key=jax.random.key(3))
