@@ -40,6 +40,14 @@ def test_chunked_rendering_does_not_depend_on_the_chunk(trained, tiny_scene):
         np.testing.assert_allclose(a, b, atol=1e-5)
     per_view = render_views(trained.model, views, tiny_scene.near, tiny_scene.far, chunk=150)
     np.testing.assert_allclose(per_view[0], whole[0], atol=1e-5)
+    # More rays than one chunk holds, fewer than two, and none at all.
+    few = rays.reshape(-1)[:7]
+    np.testing.assert_allclose(
+        render_rays(trained.model, few, chunk=5)[0], whole[0].reshape(-1, 3)[:7], atol=1e-5
+    )
+    assert render_rays(trained.model, rays.reshape(-1)[:0], chunk=5)[0].shape == (0, 3)
+    with pytest.raises(ValueError, match="chunk"):
+        render_rays(trained.model, rays, chunk=0)
 
 
 def test_eval_command_reproduces_the_training_metrics(trained, tiny_scene, capsys):
