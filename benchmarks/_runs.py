@@ -488,12 +488,12 @@ def print_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
         print("| " + " | ".join(cell(value) for value in row) + " |")
 
 
-def _relative_paths(value: Any) -> Any:
+def relative_paths(value: Any) -> Any:
     """`value` with every string that names a path inside the repository made relative to it."""
     if isinstance(value, dict):
-        return {key: _relative_paths(item) for key, item in value.items()}
+        return {key: relative_paths(item) for key, item in value.items()}
     if isinstance(value, list | tuple):
-        return [_relative_paths(item) for item in value]
+        return [relative_paths(item) for item in value]
     if isinstance(value, str) and value.startswith(str(REPO) + "/"):
         return value[len(str(REPO)) + 1 :]
     return value
@@ -502,5 +502,5 @@ def _relative_paths(value: Any) -> Any:
 def write_json(path: Path, payload: Any) -> None:
     """Writes `payload` as JSON, with paths inside the repository relative to it."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_relative_paths(payload), indent=2))
+    path.write_text(json.dumps(relative_paths(payload), indent=2))
     print(f"written to {path}")

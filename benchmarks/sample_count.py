@@ -57,6 +57,7 @@ from _runs import (
     override_keys,
     platform_tag,
     print_table,
+    relative_paths,
     resolve,
     scene_spec,
     schedule_overrides,
@@ -233,6 +234,7 @@ def run_one(args, scene, variant, samples: int, cache: DatasetCache) -> dict[str
             skipped = benchmark_renders(run.model, dataset, chunk, make_skipping(config, grid))
             record["skipping"] = {
                 "occupancy": dataclasses.asdict(config.occupancy),
+                "density_threshold": grid.threshold,
                 "occupied_fraction": float(grid.occupied_fraction()),
                 "grid_s": grid_s,
                 **{k: v for k, v in skipped.items() if k != "per_view"},
@@ -287,7 +289,7 @@ def main() -> None:
             for variant in args.variant:
                 rows.append(run_one(args, scene, variant, samples, cache))
                 with open(jsonl, "a") as handle:
-                    handle.write(json.dumps({"machine": machine, **rows[-1]}) + "\n")
+                    handle.write(json.dumps(relative_paths({"machine": machine, **rows[-1]})) + "\n")
     header = (
         "scene",
         "model",

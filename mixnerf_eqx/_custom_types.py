@@ -13,11 +13,14 @@ Dimension names used throughout the package:
 from typing import TypeAlias
 
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, Shaped
+from jaxtyping import Array, Bool, Float, Int, Key, PRNGKeyArray, Shaped, UInt32
 
 Scalar: TypeAlias = Float[Array, ""]
 ScalarLike: TypeAlias = float | Float[Array, ""]
 PRNGKey: TypeAlias = PRNGKeyArray
+# One key per ray (typed keys, or raw uint32 pairs), and four per ray (see `MixNeRF`).
+RayKeys: TypeAlias = Key[Array, " rays"] | UInt32[Array, "rays 2"]
+FourKeysPerRay: TypeAlias = Key[Array, "rays 4"] | UInt32[Array, "rays 4 2"]
 
 # Per-ray quantities (a renderer sees one ray; vmap adds `*batch`).
 Vec3: TypeAlias = Float[Array, "3"]
@@ -48,6 +51,8 @@ __all__ = [
     "ImageStack",
     "Int",
     "PRNGKey",
+    "RayKeys",
+    "FourKeysPerRay",
     "PerSample",
     "PerSample3",
     "PerSampleRGB",
