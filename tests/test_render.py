@@ -1,5 +1,6 @@
 """Volume-rendering math (paper eqs. 2 and 8) against float64 numpy references."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from helpers import (
     ref_expected_depth,
 )
 
+import mixnerf_eqx as mx
 from mixnerf_eqx import FieldOutputs, VolumeRenderer, blend_weights, composite_rgb, expected_depth
 from mixnerf_eqx._render import accumulation
 
@@ -129,3 +131,23 @@ def test_volume_renderer_matches_reference(background):
     if background is not None:
         # A translucent ray over white is brighter than the same ray over nothing.
         assert np.all(np.asarray(level.rgb) > ref_composite_rgb(weights, rgb) + 0.1)
+
+
+def test_a_batch_renders_each_ray_as_render_ray_does(tiny_config, tiny_scene):
+    model = mx.build_model(tiny_config, key=jax.random.key(0))
+    rays = mx.data.rays_for_views(tiny_scene.train.select([0]), tiny_scene.near, tiny_scene.far)
+    rays = rays.reshape(-1)[::97][:6].reshape(2, 3)
+    key = jax.random.key(11)
+    for batch_key in (None, key):
+        batch = model(rays, key=batch_key)
+        flat = rays.reshape(-1)
+        ray_keys = None if batch_key is None else jax.random.split(batch_key, 6)
+        for i in range(6):
+            one = model.render_ray(flat[i], key=None if ray_keys is None else ray_keys[i])
+            for level in ("coarse", "fine"):
+                a, b = getattr(batch, level), getattr(one, level)
+                np.testing.assert_allclose(a.rgb.reshape(6, 3)[i], b.rgb, atol=1e-5)
+                np.testing.assert_allclose(a.t_edges.reshape(6, -1)[i], b.t_edges, atol=1e-5)
+                np.testing.assert_allclose(a.weights.reshape(6, -1)[i], b.weights, atol=1e-5)
+    # Training randomness changes the samples; without a key they are evenly spaced.
+    assert not np.allclose(model(rays, key=key).coarse.t_edges, model(rays).coarse.t_edges)
