@@ -204,12 +204,16 @@ def calibrate_grid(
     )
 
 
-def occupancy_for_model(config: Config, dataset: Dataset, model: MixNeRF, *, key: PRNGKey) -> OccupancyGrid:
+def occupancy_for_model(
+    config: Config, dataset: Dataset, model: MixNeRF, *, key: PRNGKey, with_choice: bool = False
+) -> OccupancyGrid | tuple[OccupancyGrid, ThresholdChoice | None]:
     """A grid of `model`'s density evaluated in every cell (for rendering a trained model),
-    with its threshold calibrated when `config.occupancy.calibrate` is on."""
+    with its threshold calibrated when `config.occupancy.calibrate` is on. `with_choice`
+    returns `(grid, ThresholdChoice or None)` instead, for reports."""
     refresh_key, calibrate_key = jax.random.split(key)
     grid = _refresh_occupancy(make_occupancy_grid(config, dataset), model.field, key=refresh_key)
-    return calibrate_grid(config, dataset, model, grid, key=calibrate_key)[0]
+    grid, choice = calibrate_grid(config, dataset, model, grid, key=calibrate_key)
+    return (grid, choice) if with_choice else grid
 
 
 # Train-section keys that do not change the trajectory: a run may resume with them changed.

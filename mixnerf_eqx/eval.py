@@ -119,14 +119,7 @@ def run(args: argparse.Namespace) -> dict:
 
     from mixnerf_eqx._evaluate import evaluate
     from mixnerf_eqx._skipping import RenderStats
-    from mixnerf_eqx._train import (
-        _refresh_occupancy,
-        calibrate_grid,
-        make_occupancy_grid,
-        make_skipping,
-        render_summary,
-        write_view_renders,
-    )
+    from mixnerf_eqx._train import make_skipping, occupancy_for_model, render_summary, write_view_renders
     from mixnerf_eqx.data._splits import evenly_spaced
     from mixnerf_eqx.metrics import lpips_available
 
@@ -154,9 +147,9 @@ def run(args: argparse.Namespace) -> dict:
     started = time.perf_counter()
     grid = skipping = choice = None
     if use_skipping:
-        refresh_key, calibrate_key = jax.random.split(jax.random.fold_in(train_key, step))
-        grid = _refresh_occupancy(make_occupancy_grid(config, dataset), model.field, key=refresh_key)
-        grid, choice = calibrate_grid(config, dataset, model, grid, key=calibrate_key)
+        grid, choice = occupancy_for_model(
+            config, dataset, model, key=jax.random.fold_in(train_key, step), with_choice=True
+        )
         skipping = make_skipping(config, grid)
     grid_seconds = time.perf_counter() - started
     stats = RenderStats()
