@@ -39,7 +39,13 @@ class LossWeights:
 
 
 class LossTerms(eqx.Module):
-    """The terms of one step's loss, averaged over rays (zero where not computed)."""
+    """The terms of one step's loss, averaged over rays (zero where not computed).
+
+    `mse_fine` and `mse_coarse` are per-element mean squared errors (over rays and
+    channels), the quantity PSNR is defined on. The objective uses the squared error summed
+    over the channels and averaged over rays (the paper's `||c_hat - c||^2`, and the released
+    code), which is `channels` times larger: `total` holds that.
+    """
 
     total: Float[Array, ""]
     mse_fine: Float[Array, ""]
@@ -89,6 +95,11 @@ def loss_terms(
 ) -> LossTerms:
     """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C`.
 
+    `MSE = mean_rays ||rgb_fine - c||^2 + coarse_mse * mean_rays ||rgb_coarse - c||^2`, the
+    squared error summed over the colour channels (paper eq. 11; the released `train.py`
+    divides the sum over rays and channels by the number of rays). The NLLs are means over
+    rays, on the coarse level unless `weights.nll_levels` says both.
+
     **Arguments:**
 
     - `outputs`: the model's render of `rays` (batch shape `(batch,)`).
@@ -98,9 +109,11 @@ def loss_terms(
     - `lambda_colour`: lambda_C at this step.
     - `weights`: the static weights.
     """
+    channels = target_rgb.shape[-1]
     mse_fine = jnp.mean((outputs.fine.rgb - target_rgb) ** 2)
     mse_coarse = jnp.mean((outputs.coarse.rgb - target_rgb) ** 2)
-    total = mse_fine + weights.coarse_mse * mse_coarse
+    # ||c_hat - c||^2 summed over the channels, averaged over rays: `channels` per-element MSEs.
+    total = channels * (mse_fine + weights.coarse_mse * mse_coarse)
     zero = jnp.zeros((), mse_fine.dtype)
     nll_colour = nll_depth = nll_regen = zero
     if weights.uses_mixture:

@@ -28,7 +28,10 @@ class RayBundle(eqx.Module):
 
     - `origins`: ray origins.
     - `directions`: unnormalised directions; `t = 1` is one unit of camera depth.
-    - `viewdirs`: unit view directions, the input of the view-dependent branch.
+    - `viewdirs`: the input of the view-dependent branch: unit view directions, except for
+      NDC rays, whose view directions are the unnormalised world-space directions from
+      before the NDC mapping (as in the released code; their norm is 1 at the image centre
+      and grows towards the corners, about 1.26 at fern's).
     - `radii`: base radii of the cones (mip-NeRF: pixel footprint at `t = 1` times 2/sqrt(12)).
     - `near`, `far`: the sampling bounds in units of `t`.
     """
@@ -230,8 +233,9 @@ def camera_rays(
         camera_dirs = intrinsic_directions(intrinsics, height, width)
         directions = np.einsum("nij,nhwj->nhwi", poses[:, :3, :3], camera_dirs)
     origins = np.broadcast_to(poses[:, None, None, :3, 3], directions.shape)
-    viewdirs = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
     if ndc:
+        # The released code feeds the pre-NDC world directions, unnormalised, to the view branch.
+        viewdirs = directions
         origins, directions = ndc_rays(origins, directions, focal, focal, width, height)
         # The NDC rays are nearly parallel, so the frustum's size is set by the spacing of the
         # origins on the near plane, averaged over both image axes.
@@ -241,11 +245,14 @@ def camera_rays(
         dy = np.concatenate([dy, dy[:, :, -2:-1]], axis=2)
         radii = 0.5 * (dx + dy)[..., None] * 2 / np.sqrt(12)
     else:
+        viewdirs = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
         # mip-NeRF: the base radius is the distance between neighbouring pixels' directions
-        # at t = 1, scaled by 2/sqrt(12) so that the cone's variance matches the pixel's.
-        dx = np.linalg.norm(directions[:, :, :-1] - directions[:, :, 1:], axis=-1)
-        dx = np.concatenate([dx, dx[:, :, -2:-1]], axis=2)
-        radii = dx[..., None] * 2 / np.sqrt(12)
+        # at t = 1, scaled by 2/sqrt(12) so that the cone's variance matches the pixel's. The
+        # neighbour is the next pixel along the image's vertical axis (the next row; the last
+        # row reuses the distance of the row above), as in the released code.
+        dy = np.linalg.norm(directions[:, :-1] - directions[:, 1:], axis=-1)
+        dy = np.concatenate([dy, dy[:, -2:-1]], axis=1)
+        radii = dy[..., None] * 2 / np.sqrt(12)
     if origin_plane_z is not None:
         origins = shift_origins_to_plane(origins, directions, origin_plane_z)
     ones = np.ones(directions.shape[:-1] + (1,))

@@ -31,11 +31,19 @@ from .data import Dataset, load_dataset, rays_for_views
 
 
 def make_optimizer(config: Config) -> optax.GradientTransformation:
-    """Element-wise clip, global-norm clip, then Adam on the log-linear warm-up schedule."""
+    """Element-wise clip, global-norm clip, then Adam on the log-linear warm-up schedule.
+
+    Steps count from 1, as in the released code: Adam's `count` is the number of updates
+    already applied, so update `count` uses the learning rate of step `count + 1`.
+    """
     optim = config.optim
-    schedule = learning_rate_schedule(
+    by_step = learning_rate_schedule(
         optim.lr_init, optim.lr_final, config.train.max_steps, optim.warmup_steps
     )
+
+    def schedule(count: Int[Array, ""]) -> Float[Array, ""]:
+        return by_step(count + 1)
+
     parts = []
     if optim.grad_max_value > 0:
         parts.append(optax.clip(optim.grad_max_value))
@@ -102,7 +110,9 @@ def make_train_step(
     """The jitted training step `(model, opt_state, data, step, key) -> (model, opt_state, metrics)`.
 
     Everything static (the config, the optimiser) is closed over, so the step traces once;
-    `step` is a traced integer and `key` the run's root key, folded with the step. With
+    `step` is a traced integer, the number of updates already applied (the schedules are
+    evaluated at `step + 1`, as steps count from 1), and `key` the run's root key, folded with
+    `step`. With
     `max_traces`, tracing more often than that raises (a guard against recompiles).
     """
     weights = config.loss.weights()
@@ -116,11 +126,17 @@ def make_train_step(
     ) -> tuple[MixNeRF, Any, StepMetrics]:
         batch_key, render_key = jax.random.split(jax.random.fold_in(key, step))
         rays, target = draw_batch(data, train_cfg.batch_size, key=batch_key)
+        # Schedules count steps from 1 (the released code): `step` updates are done, this is
+        # update `step + 1`.
+        step_number = step + 1
         rays = anneal_sample_space(
-            rays, step, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid
+            rays, step_number, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid
         )
         lambda_colour = linear_ramp(
-            step, loss_cfg.lambda_colour_start, loss_cfg.lambda_colour_end, loss_cfg.lambda_colour_steps
+            step_number,
+            loss_cfg.lambda_colour_start,
+            loss_cfg.lambda_colour_end,
+            loss_cfg.lambda_colour_steps,
         )
         (_, terms), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
             model, rays, target, lambda_colour, weights, key=render_key
@@ -138,7 +154,7 @@ def make_train_step(
         metrics = StepMetrics(
             terms=terms,
             psnr=-10.0 * jnp.log10(terms.mse_fine),
-            learning_rate=schedule(step),
+            learning_rate=schedule(step_number),
             lambda_colour=lambda_colour,
             skipped=~finite,
         )

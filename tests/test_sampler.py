@@ -82,7 +82,7 @@ def test_deterministic_draws_are_evenly_spaced_quantiles():
     np.testing.assert_array_equal(draws, np.asarray(again))
     assert np.all(np.diff(draws) >= 0)
     assert bins[0] <= draws[0] and draws[-1] <= bins[-1]
-    # mip-NeRF's deterministic draws sit at probabilities evenly spaced in [0, 1 - 1e-5].
+    # The deterministic draws sit at probabilities evenly spaced in [0, 1 - eps].
     np.testing.assert_allclose(ref_cdf(bins, weights, draws), np.linspace(0, 1, 32), atol=1e-4)
 
 
@@ -131,7 +131,29 @@ def test_zero_weights_give_uniform_draws():
     draws = np.asarray(sample_piecewise_constant(bins, jnp.zeros(16), 33, key=None), np.float64)
     assert np.all(np.isfinite(draws))
     assert draws[0] == NEAR
-    np.testing.assert_allclose(np.diff(draws), (FAR - NEAR) * (1 - 1e-5) / 32, rtol=1e-4)
+    np.testing.assert_allclose(np.diff(draws), (FAR - NEAR) * (1 - EPS32) / 32, rtol=1e-5)
+
+
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def test_deterministic_draws_span_zero_to_one_minus_float32_epsilon():
+    """The released resampler draws at `linspace(0, 1 - eps)` with float32's machine epsilon
+    (mip-NeRF's PyTorch ports use 1e-5, which ends the last draw 1e-5 short of the far edge)."""
+    draws = np.asarray(sample_piecewise_constant(jnp.asarray([0.0, 1.0]), jnp.ones(1), 5, key=None))
+    np.testing.assert_allclose(draws, np.linspace(0.0, 1.0 - EPS32, 5), rtol=0, atol=1e-7)
+    assert draws[-1] > 1.0 - 1e-6
+
+
+def test_padding_only_lifts_the_weight_sum_to_float32_epsilon():
+    """Weights summing to 1e-6 (above float32's epsilon) are used as they are: every draw
+    lands in the one bin that has weight. Below epsilon the padding spreads them out."""
+    bins = jnp.linspace(0.0, 4.0, 5)
+    weights = jnp.asarray([0.0, 0.0, 1e-6, 0.0])
+    draws = np.asarray(sample_piecewise_constant(bins, weights, 9, key=None))
+    assert np.all((draws >= 2.0) & (draws <= 3.0))
+    tiny = np.asarray(sample_piecewise_constant(bins, weights * 1e-3, 9, key=None))
+    assert tiny[0] < 2.0 and tiny[-1] > 3.0
 
 
 # --- blur and the hierarchical sampler ------------------------------------------------------

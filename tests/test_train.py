@@ -191,3 +191,33 @@ def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, m
             config.train.run_dir, model=model, opt_state=(), step=99, key=jax.random.key(0), config={}
         )
     assert latest_checkpoint(config.train.run_dir) == before
+
+
+def test_schedules_count_steps_from_one(tiny_config, tiny_scene):
+    """The first update uses every schedule at step 1 (the released code): Adam's first step
+    moves each parameter by the learning rate of step 1, and lambda_C is the ramp's value at 1."""
+    config = tiny_config
+    model = mx.build_model(config, key=jax.random.key(0))
+    optimizer = make_optimizer(config)
+    opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
+    step_fn = make_train_step(config, optimizer)
+    new_model, _, metrics = step_fn(
+        model, opt_state, training_rays(tiny_scene), jnp.asarray(0, jnp.int32), jax.random.key(1)
+    )
+    optim = config.optim
+    lr_1 = learning_rate_schedule(optim.lr_init, optim.lr_final, config.train.max_steps, optim.warmup_steps)(
+        1
+    )
+    loss = config.loss
+    ramp_1 = linear_ramp(1, loss.lambda_colour_start, loss.lambda_colour_end, loss.lambda_colour_steps)
+    assert float(metrics.learning_rate) == pytest.approx(float(lr_1), rel=1e-6)
+    assert float(metrics.lambda_colour) == pytest.approx(float(ramp_1), rel=1e-6)
+    # Adam's first update is lr * g / (|g| + 1e-8): |change| = lr wherever |g| >> 1e-8.
+    old = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(eqx.filter(model, eqx.is_array))])
+    new = np.concatenate(
+        [np.ravel(x) for x in jax.tree_util.tree_leaves(eqx.filter(new_model, eqx.is_array))]
+    )
+    change = np.abs(new - old)
+    moved = change[change > 0]
+    np.testing.assert_allclose(np.median(moved), float(lr_1), rtol=1e-3)
+    assert float(lr_1) > 2 * float(learning_rate_schedule(optim.lr_init, optim.lr_final, 150, 20)(0))

@@ -21,10 +21,13 @@ def sample_piecewise_constant(
 
     Draws are stratified (one per `1/num_draws` of probability, jittered when a `key` is
     given, evenly spaced otherwise), so the result is sorted.
+
+    As in the released code, `eps` is float32's machine epsilon: weights whose sum is below
+    it are padded up to it (so that a ray whose weights vanish falls back to a uniform
+    density, and the padding changes nothing otherwise), and the draws span `[0, 1 - eps]`.
     """
-    eps = 1e-5
+    eps = float(jnp.finfo(jnp.float32).eps)
     num_bins = weights.shape[0]
-    # A ray whose weights (nearly) vanish falls back to a uniform density.
     total = jnp.sum(weights)
     padding = jnp.maximum(0.0, eps - total)
     weights = weights + padding / num_bins

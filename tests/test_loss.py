@@ -1,0 +1,219 @@
+"""The objective (paper eq. 11) against a float64 transcription of the released `train.py`.
+
+The reference below follows the released arithmetic step by step in numpy: the colour MSE is
+the squared error summed over rays and channels divided by the number of rays; the NLLs are
+`-log(sum_j pi_j prod_c Laplace_jc + 1e-12)` with `pi = w / sum w`, averaged over rays and
+applied to the coarse level; the regenerated weights composite the same densities with the
+per-sample ray depth in place of `||d||`. It shares no code with the package.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import as_f32, as_f64
+
+import mixnerf_eqx as mx
+from mixnerf_eqx._field import FieldOutputs
+from mixnerf_eqx._loss import LossWeights, loss_terms
+from mixnerf_eqx._model import RenderOutputs
+from mixnerf_eqx._renderer import LevelOutputs
+
+
+def _ref_weights(density, t_edges, step_scale):
+    """`w = alpha * T` over a batch of rays (`step_scale`: `||d||` per ray, or per sample)."""
+    delta = np.diff(t_edges, axis=-1) * step_scale
+    density_delta = density * delta
+    alpha = 1.0 - np.exp(-density_delta)
+    optical_depth = np.concatenate(
+        [np.zeros_like(density_delta[:, :1]), np.cumsum(density_delta[:, :-1], axis=-1)], axis=-1
+    )
+    return alpha * np.exp(-optical_depth)
+
+
+def _ref_nll(mu, pi, gamma, gt):
+    """The released `compute_nll` with the Laplace density, in float64: one value per ray."""
+    eps = 1e-12
+    gamma = gamma + eps
+    pdf = np.exp(-np.abs(gt - mu) / gamma) / (2 * gamma)
+    likelihood = np.sum(pi * np.prod(pdf, axis=2), axis=1)
+    return -np.log(likelihood + eps)
+
+
+def _ref_level_nlls(level, target, dirs_norm):
+    weights = level["weights"]
+    pi = weights / np.sum(weights, axis=-1, keepdims=True)
+    colour = _ref_nll(level["rgb_samples"], pi, level["beta"], target[:, None, :])
+    depth = _ref_nll(level["ray_depth"][..., None], pi, level["beta"], dirs_norm[:, None, None])
+    regen_weights = _ref_weights(level["density"], level["t_edges"], level["ray_depth"])
+    pi_regen = regen_weights / np.sum(regen_weights, axis=-1, keepdims=True)
+    regen = _ref_nll(level["rgb_samples"], pi_regen, level["beta"], target[:, None, :])
+    return np.mean(colour), np.mean(depth), np.mean(regen)
+
+
+def _ref_objective(levels, target, directions, lambdas, *, nll_levels="coarse", coarse_mult=0.1):
+    """The released total loss (and its terms) for `levels = {"coarse": ..., "fine": ...}`."""
+    num_rays = target.shape[0]
+    sse = {name: np.sum((level["rgb"] - target) ** 2) / num_rays for name, level in levels.items()}
+    dirs_norm = np.linalg.norm(directions, axis=-1)
+    nll = np.zeros(3)
+    for name in ["coarse"] if nll_levels == "coarse" else ["coarse", "fine"]:
+        nll += np.asarray(_ref_level_nlls(levels[name], target, dirs_norm))
+    lambda_colour, lambda_depth, lambda_regen = lambdas
+    total = sse["fine"] + coarse_mult * sse["coarse"] + lambda_colour * nll[0]
+    total += lambda_depth * nll[1] + lambda_regen * nll[2]
+    return total, sse, nll
+
+
+def _random_level(rng, num_rays, num_samples, dirs_norm, background):
+    t_edges = np.sort(rng.uniform(2.0, 6.0, (num_rays, num_samples + 1)), axis=-1)
+    density = rng.uniform(0.0, 2.0, (num_rays, num_samples))
+    rgb_samples = rng.uniform(0.0, 1.0, (num_rays, num_samples, 3))
+    beta = rng.uniform(0.05, 0.6, (num_rays, num_samples, 3))
+    ray_depth = rng.uniform(0.5, 1.5, (num_rays, num_samples))
+    t_edges, density, rgb_samples, beta, ray_depth = as_f64(
+        *as_f32(t_edges, density, rgb_samples, beta, ray_depth)
+    )
+    return _level(t_edges, density, rgb_samples, beta, ray_depth, dirs_norm, background)
+
+
+def _level(t_edges, density, rgb_samples, beta, ray_depth, dirs_norm, background):
+    weights = as_f64(as_f32(_ref_weights(density, t_edges, dirs_norm[:, None])))
+    rgb = np.sum(weights[..., None] * rgb_samples, axis=1) + (1 - weights.sum(-1))[:, None] * background
+    return {
+        "t_edges": t_edges,
+        "density": density,
+        "rgb_samples": rgb_samples,
+        "beta": beta,
+        "ray_depth": ray_depth,
+        "weights": weights,
+        "rgb": as_f64(as_f32(rgb)),
+    }
+
+
+def _as_outputs(levels):
+    def level_outputs(level):
+        f32 = {k: jnp.asarray(as_f32(v)) for k, v in level.items()}
+        return LevelOutputs(
+            weights=f32["weights"],
+            t_edges=f32["t_edges"],
+            field=FieldOutputs(
+                density=f32["density"], rgb=f32["rgb_samples"], beta=f32["beta"], ray_depth=f32["ray_depth"]
+            ),
+            rgb=f32["rgb"],
+            depth=jnp.zeros(level["rgb"].shape[0]),
+            acc=jnp.sum(f32["weights"], axis=-1),
+        )
+
+    return RenderOutputs(coarse=level_outputs(levels["coarse"]), fine=level_outputs(levels["fine"]))
+
+
+def _rays(directions):
+    count = directions.shape[0]
+    directions = jnp.asarray(as_f32(directions))
+    return mx.RayBundle(
+        origins=jnp.zeros((count, 3)),
+        directions=directions,
+        viewdirs=directions / jnp.linalg.norm(directions, axis=-1, keepdims=True),
+        radii=jnp.full((count, 1), 1e-3),
+        near=jnp.full((count, 1), 2.0),
+        far=jnp.full((count, 1), 6.0),
+    )
+
+
+@pytest.fixture(scope="module")
+def mixnerf_model():
+    config = mx.load_config("configs/builtin.toml", ["model.width=16", "model.depth=2", "model.skip_layer=1"])
+    return mx.build_model(config, key=jax.random.key(0))
+
+
+def _package_terms(model, levels, target, directions, lambdas, nll_levels="coarse"):
+    weights = LossWeights(
+        coarse_mse=0.1, colour_nll=True, depth_nll=lambdas[1], regen_nll=lambdas[2], nll_levels=nll_levels
+    )
+    return loss_terms(
+        _as_outputs(levels),
+        model,
+        _rays(directions),
+        jnp.asarray(as_f32(target)),
+        jnp.asarray(lambdas[0], jnp.float32),
+        weights,
+    )
+
+
+def test_a_known_input_gives_the_written_out_loss(mixnerf_model):
+    """Two rays, two samples each, white background: every number chosen by hand.
+
+    The total below was computed once with the float64 transcription and is written out, so
+    that both the package and the transcription are held to it.
+    """
+    background = np.ones(3)
+    directions = np.array([[0.0, 0.0, -1.0], [0.6, 0.0, -0.8]]) * np.array([[1.0], [1.25]])
+    dirs_norm = np.linalg.norm(directions, axis=-1)
+    target = np.array([[0.25, 0.5, 0.75], [1.0, 0.5, 0.0]])
+    t_edges = np.array([[2.0, 3.0, 5.0], [2.0, 2.5, 6.0]])
+    density = np.array([[0.5, 2.0], [1.0, 0.25]])
+    rgb_samples = np.array([[[0.2, 0.4, 0.8], [0.5, 0.5, 0.5]], [[0.9, 0.6, 0.1], [0.0, 1.0, 0.0]]])
+    beta = np.array([[[0.1, 0.2, 0.3], [0.25, 0.25, 0.25]], [[0.5, 0.125, 0.1], [0.2, 0.4, 0.2]]])
+    ray_depth = np.array([[1.0, 0.75], [1.5, 1.25]])
+    level = _level(t_edges, density, rgb_samples, beta, ray_depth, dirs_norm, background)
+    # The fine level of this example is the coarse level with other sample colours.
+    fine = _level(t_edges, density, rgb_samples[:, ::-1], beta, ray_depth, dirs_norm, background)
+    levels = {"coarse": level, "fine": fine}
+    lambdas = (4.0, 1e-3, 1e-4)
+    total, sse, nll = _ref_objective(levels, target, directions, lambdas)
+    written_out = -2.975172005
+    assert total == pytest.approx(written_out, abs=5e-6)
+    terms = _package_terms(mixnerf_model, levels, target, directions, lambdas)
+    assert float(terms.total) == pytest.approx(written_out, rel=2e-6)
+    # The MSE terms the package logs are per-element means: a third of the summed error.
+    assert float(terms.mse_fine) == pytest.approx(sse["fine"] / 3, rel=1e-6)
+    assert float(terms.mse_coarse) == pytest.approx(sse["coarse"] / 3, rel=1e-6)
+    np.testing.assert_allclose([terms.nll_colour, terms.nll_depth, terms.nll_regen], nll, rtol=2e-6)
+
+
+@pytest.mark.parametrize("nll_levels", ["coarse", "both"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_objective_matches_the_released_arithmetic(mixnerf_model, seed, nll_levels):
+    rng = np.random.default_rng(seed)
+    num_rays, num_samples = 16, 12
+    directions = as_f64(as_f32(rng.normal(size=(num_rays, 3)) * np.array([0.3, 0.3, 1.0]) - [0, 0, 1]))
+    dirs_norm = np.linalg.norm(directions, axis=-1)
+    background = np.ones(3) if seed % 2 else np.zeros(3)
+    levels = {
+        name: _random_level(rng, num_rays, num_samples, dirs_norm, background) for name in ("coarse", "fine")
+    }
+    target = as_f64(as_f32(rng.uniform(0, 1, (num_rays, 3))))
+    lambdas = (float(rng.uniform(0.001, 4.0)), 1e-3, 1e-4)
+    total, sse, nll = _ref_objective(levels, target, directions, lambdas, nll_levels=nll_levels)
+    terms = _package_terms(mixnerf_model, levels, target, directions, lambdas, nll_levels)
+    assert float(terms.total) == pytest.approx(total, rel=1e-5)
+    assert 3 * float(terms.mse_fine) == pytest.approx(sse["fine"], rel=1e-5)
+    np.testing.assert_allclose(
+        [terms.nll_colour, terms.nll_depth, terms.nll_regen], nll, rtol=1e-5, atol=1e-5
+    )
+
+
+def test_the_baseline_objective_is_the_summed_squared_error(mixnerf_model):
+    """With no mixture term the loss is `sum_c` squared error of the fine level plus 0.1 times
+    the coarse level's, averaged over rays: three per-element MSEs, not one."""
+    rng = np.random.default_rng(3)
+    directions = np.tile([[0.0, 0.0, -1.0]], (8, 1))
+    levels = {name: _random_level(rng, 8, 6, np.ones(8), np.ones(3)) for name in ("coarse", "fine")}
+    target = as_f64(as_f32(rng.uniform(0, 1, (8, 3))))
+    terms = loss_terms(
+        _as_outputs(levels),
+        mixnerf_model,
+        _rays(directions),
+        jnp.asarray(as_f32(target)),
+        jnp.asarray(0.0),
+        dataclasses.replace(LossWeights(), colour_nll=False, depth_nll=0.0, regen_nll=0.0),
+    )
+    expected = sum(
+        mult * np.sum((levels[name]["rgb"] - target) ** 2) / 8
+        for name, mult in (("fine", 1.0), ("coarse", 0.1))
+    )
+    assert float(terms.total) == pytest.approx(expected, rel=1e-6)
+    assert float(terms.nll_colour) == float(terms.nll_depth) == float(terms.nll_regen) == 0.0
