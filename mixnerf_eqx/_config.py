@@ -35,7 +35,7 @@ class DataConfig:
     max_test_views: int = 0  # files: keep this many of the protocol's test views, evenly spaced (0: all)
     near: float = 0.0  # with far > 0: replaces the dataset's near bound
     far: float = 0.0  # > 0: replaces the dataset's far bound (transforms.json scenes need no bounds)
-    image_downscale: int = 1  # transforms.json scenes: area-downsample the images by this factor
+    image_downscale: int = 1  # files: average FxF pixel blocks of the format's resolution (cameras too)
     dtu_mask_dir: str = ""  # DTU object masks (RegNeRF's idrmasks); empty: found under the dataset root
 
 

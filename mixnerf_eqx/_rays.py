@@ -248,10 +248,13 @@ def camera_rays(
         viewdirs = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
         # mip-NeRF: the base radius is the distance between neighbouring pixels' directions
         # at t = 1, scaled by 2/sqrt(12) so that the cone's variance matches the pixel's. The
-        # neighbour is the next pixel along the image's vertical axis (the next row; the last
-        # row reuses the distance of the row above), as in the released code.
+        # neighbour is the next pixel along the image's vertical axis (the next row), as in the
+        # released code; the last row reuses the distance above it (for a pinhole camera every
+        # row's distance is the same).
+        if height < 2:
+            raise ValueError(f"cone radii need images of at least 2 rows, got {height}")
         dy = np.linalg.norm(directions[:, :-1] - directions[:, 1:], axis=-1)
-        dy = np.concatenate([dy, dy[:, -2:-1]], axis=1)
+        dy = np.concatenate([dy, dy[:, -1:]], axis=1)
         radii = dy[..., None] * 2 / np.sqrt(12)
     if origin_plane_z is not None:
         origins = shift_origins_to_plane(origins, directions, origin_plane_z)

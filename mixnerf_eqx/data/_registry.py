@@ -114,11 +114,19 @@ def load_dataset(config: DataConfig) -> Dataset:
     The `Dataset`, with the protocol's training and test views. Every problem with the files
     is a `DatasetError` (a `ValueError`) whose message names the file and what to do.
     """
+    if config.image_downscale < 1:
+        raise DatasetError(f"data.image_downscale must be at least 1, got {config.image_downscale}.")
     if config.dataset == "builtin":
         if config.scene != "builtin":
             raise DatasetError(
                 f'unknown scene {config.scene!r} for data.dataset = "builtin" (whose only scene is '
                 f'"builtin"); for a scene on disk set data.dataset to one of {", ".join(DATASETS[1:])}.'
+            )
+        if config.image_downscale != 1:
+            raise DatasetError(
+                f"data.image_downscale = {config.image_downscale} applies to scenes on disk; the built-in "
+                f"scene is rendered at data.resolution (now {config.resolution}): set data.resolution "
+                "instead and leave data.image_downscale at 1."
             )
         from .procedural import make_builtin_scene
 
@@ -161,10 +169,14 @@ def load_dataset(config: DataConfig) -> Dataset:
             num_train_views=config.num_train_views,
             protocol=config.protocol,
             max_test_views=config.max_test_views,
+            downscale=config.image_downscale,
         )
     elif config.dataset == "llff":
         dataset = llff.load_llff(
-            scene_dir, num_train_views=config.num_train_views, max_test_views=config.max_test_views
+            scene_dir,
+            num_train_views=config.num_train_views,
+            max_test_views=config.max_test_views,
+            downscale=config.image_downscale,
         )
     elif config.dataset == "dtu":
         dataset = dtu.load_dtu(
@@ -173,10 +185,9 @@ def load_dataset(config: DataConfig) -> Dataset:
             mask_roots=_mask_roots(config, data_root(config)),
             masks_required=bool(config.dtu_mask_dir),
             max_test_views=config.max_test_views,
+            downscale=config.image_downscale,
         )
     else:
-        if config.image_downscale < 1:
-            raise DatasetError(f"data.image_downscale must be at least 1, got {config.image_downscale}.")
         return transforms.load_transforms(
             scene_dir,
             num_train_views=config.num_train_views,

@@ -6,8 +6,16 @@ A split's images may instead come from a `<split>_400/` folder beside `<split>/`
 same views already downsampled (such as the `test_400/` folder of the project's shared data):
 the loader reads `<split>/` when it holds every image it needs, else `<split>_400/`.
 
+A `downscale` factor (`data.image_downscale`) then area-averages the composited 400x400
+images further, so that each output pixel is the mean of the protocol's pixels as they are
+scored; both splits alike, whether read from `<split>/` or `<split>_400/`. A side that the
+factor does not divide loses its remainder, half from each end, and an odd remainder gives
+the views explicit intrinsics that keep the principal point where it was (see
+`mixnerf_eqx.data._downscale`).
+
 Cameras are the JSON's OpenGL camera-to-world matrices; the focal length follows from
-`camera_angle_x` and the final image width. Sampling bounds are near 2 and far 6.
+`camera_angle_x` and the 400-pixel width, divided by `downscale` (so by `2 * downscale`
+from the 800x800 renders' camera). Sampling bounds are near 2 and far 6.
 
 Two protocols choose the views:
 
@@ -26,6 +34,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ._dataset import Dataset, Views
+from ._downscale import check_factor, downscale_centred_camera, downscale_image
 from ._errors import DatasetError
 from ._files import (
     area_downsample,
@@ -141,7 +150,7 @@ def _read_split_images(paths: list[Path]) -> tuple[np.ndarray, list[Path]]:
     return np.stack([composite_on_white(to_float(image)) for image in images]), small
 
 
-def _load_views(scene_dir: Path, ids: list[int], meta: Any, path: Path) -> Views:
+def _load_views(scene_dir: Path, ids: list[int], meta: Any, path: Path, downscale: int) -> Views:
     frames = _frames(meta, path)
     paths = [_image_path(scene_dir, frames[i]["file_path"]) for i in ids]
     poses = np.stack(
@@ -152,14 +161,20 @@ def _load_views(scene_dir: Path, ids: list[int], meta: Any, path: Path) -> Views
             for i in ids
         ]
     )
-    images, _ = _read_split_images(paths)
-    width = images.shape[2]
-    focal = 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))
+    images, sources = _read_split_images(paths)
+    height, width = images.shape[1:3]
+    check_factor(downscale, height, width, sources[0])
+    focal, intrinsics = downscale_centred_camera(
+        0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"])), height, width, downscale, len(ids)
+    )
+    if downscale > 1:
+        images = np.stack([downscale_image(image, downscale) for image in images])
     return Views(
         images=np.ascontiguousarray(images, np.float32),
         camtoworlds=poses.astype(np.float32),
         focal=float(focal),
         ids=tuple(ids),
+        intrinsics=intrinsics,
     )
 
 
@@ -169,6 +184,7 @@ def load_blender(
     num_train_views: int,
     protocol: Literal["mixnerf", "dietnerf"] = "mixnerf",
     max_test_views: int = 0,
+    downscale: int = 1,
 ) -> Dataset:
     """Loads one NeRF synthetic scene under the chosen protocol.
 
@@ -179,10 +195,12 @@ def load_blender(
     - `protocol`: `"mixnerf"` or `"dietnerf"` (see the module docstring).
     - `max_test_views`: keep only this many of the protocol's test views, evenly spaced
       (0 keeps them all).
+    - `downscale`: area-average `downscale x downscale` blocks of the composited 400x400
+      images and divide the focal length by it (see the module docstring); 1 keeps 400x400.
 
     **Returns:**
 
-    A `Dataset` at 400x400 on a white background, with near 2 and far 6.
+    A `Dataset` at 400x400 (over `downscale`) on a white background, with near 2 and far 6.
     """
     train_path = scene_dir / "transforms_train.json"
     test_path = scene_dir / "transforms_test.json"
@@ -198,8 +216,8 @@ def load_blender(
     test_ids = subsample_test_ids(test_ids, max_test_views)
     return Dataset(
         name=scene_dir.name,
-        train=_load_views(scene_dir, train_ids, train_meta, train_path),
-        test=_load_views(scene_dir, test_ids, test_meta, test_path),
+        train=_load_views(scene_dir, train_ids, train_meta, train_path, downscale),
+        test=_load_views(scene_dir, test_ids, test_meta, test_path, downscale),
         near=NEAR,
         far=FAR,
         white_background=True,

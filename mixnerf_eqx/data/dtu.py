@@ -23,6 +23,12 @@ views from `<mask_root>/<scan>/mask/<id:03d>.png` or `<mask_root>/<scan>/<id:03d
 release uses the first form for scans 40, 55, 63, 110 and 114, the second for the others), and
 subsampled to the image size by taking every 4th pixel (OpenCV's nearest-neighbour resize, as
 RegNeRF does). A pixel is on the object where all three channels are 255.
+
+A `downscale` factor (`data.image_downscale`) area-averages the 400x300 images further, on top
+of the protocol's resolution, and divides rows 0 and 1 of the intrinsics by it; a side that it
+does not divide loses its remainder, half from each end, and the principal point moves with
+the crop (see `mixnerf_eqx.data._downscale`). The masks follow the images: a downscaled pixel
+is on the object where more than half of its block of 400x300 mask pixels is.
 """
 
 import warnings
@@ -33,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ._dataset import Dataset, Views
+from ._downscale import check_factor, downscale_image, downscale_intrinsics, downscale_mask
 from ._errors import DatasetError
 from ._files import area_downsample, check_same_size, list_images, read_image, read_images, require_file
 from ._poses import decompose_projection, recenter_poses
@@ -174,6 +181,7 @@ def load_dtu(
     max_test_views: int = 0,
     full_size: tuple[int, int] = FULL_SIZE,
     factor: int = FACTOR,
+    downscale: int = 1,
 ) -> Dataset:
     """Loads one DTU scan with the few-shot protocol's split and, when found, its test masks.
 
@@ -189,11 +197,14 @@ def load_dtu(
       (0 keeps them all).
     - `full_size`: the `(width, height)` of full-size images, which are downsampled.
     - `factor`: the downsampling factor of full-size images.
+    - `downscale`: area-average `downscale x downscale` blocks of the 400x300 images (and
+      their masks), with the intrinsics to match (see the module docstring); 1 keeps them.
 
     **Returns:**
 
-    A `Dataset` at the images' resolution (400x300 for `rs_dtu_4`) with per-view intrinsics,
-    rays starting on the average camera's plane, near 0.5, far 3.5 and no background colour.
+    A `Dataset` at the images' resolution (400x300 for `rs_dtu_4`), over `downscale`, with
+    per-view intrinsics, rays starting on the average camera's plane, near 0.5, far 3.5 and
+    no background colour.
     """
     image_dir = scan_dir / "image"
     if not image_dir.is_dir():
@@ -219,6 +230,7 @@ def load_dtu(
         # Pixel coordinates shrink with the image; the camera does not change.
         k[:, :2, :] /= scale
         height, width = images.shape[1:3]
+        check_factor(downscale, height, width, paths[0])
         for view, matrix in zip(ids, k, strict=True):
             cx, cy = matrix[0, 2], matrix[1, 2]
             if not (0 < cx < width and 0 < cy < height):
@@ -227,13 +239,19 @@ def load_dtu(
                     f"outside the {width}x{height} image {files[view].name}: the cameras belong to images "
                     "of another size. Use the cameras.npz that came with these images."
                 )
+        mask_stack = None if masks is None else np.stack([_read_mask(p, height, width) for p in masks])
+        if downscale > 1:
+            images = np.stack([downscale_image(image, downscale) for image in images])
+            k = downscale_intrinsics(k, height, width, downscale)
+            if mask_stack is not None:
+                mask_stack = np.stack([downscale_mask(mask, downscale) for mask in mask_stack])
         return Views(
             images=images,
             camtoworlds=camtoworlds[ids].astype(np.float32),
             focal=float(np.mean(k[:, 0, 0])),
             ids=tuple(ids),
             intrinsics=k.astype(np.float32),
-            masks=None if masks is None else np.stack([_read_mask(p, height, width) for p in masks]),
+            masks=mask_stack,
             origin_plane_z=ORIGIN_PLANE_Z,
         )
 

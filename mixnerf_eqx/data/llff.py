@@ -6,6 +6,12 @@ height, width and focal length) and the view's near and far depth bounds. The lo
 the NeRF LLFF loader: it reorders the axes to OpenGL's right, up, backward; scales the scene so
 that the nearest bound becomes 1 / 0.75; and recentres the cameras on their average pose. The
 images are the 8x downsampled `images_8/` (504x378), so the focal length is divided by 8.
+A `downscale` factor (`data.image_downscale`) area-averages those images further, on top of
+the protocol's 504x378, and divides the focal length by it; the NDC mapping takes the
+downscaled focal length, width and height. A side that the factor does not divide (4 and 8
+leave a remainder of 2 of the 378 rows) loses its remainder, half from each end, which keeps
+the principal point at the centre; an odd remainder gives the views explicit intrinsics that
+hold it (see `mixnerf_eqx.data._downscale`).
 
 Rays live in normalised device coordinates (near plane 1 in the recentred world, sampling
 bounds 0 and 1) with cylindrical frustums. The protocol holds out every 8th image for testing
@@ -17,8 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from ._dataset import Dataset, Views
+from ._downscale import check_factor, downscale_centred_camera, downscale_image
 from ._errors import DatasetError
-from ._files import check_same_size, list_images, read_images, read_npy, require_dir, to_float
+from ._files import check_same_size, list_images, read_images, read_npy, require_dir
 from ._poses import recenter_poses
 from ._splits import holdout_split, subsample_test_ids
 
@@ -71,7 +78,9 @@ def llff_poses(
     return recenter_poses(camtoworlds), bounds, (height, width, focal)
 
 
-def load_llff(scene_dir: Path, *, num_train_views: int, max_test_views: int = 0) -> Dataset:
+def load_llff(
+    scene_dir: Path, *, num_train_views: int, max_test_views: int = 0, downscale: int = 1
+) -> Dataset:
     """Loads one LLFF scene with the few-shot protocol's split.
 
     **Arguments:**
@@ -80,6 +89,8 @@ def load_llff(scene_dir: Path, *, num_train_views: int, max_test_views: int = 0)
     - `num_train_views`: the number of training views.
     - `max_test_views`: keep only this many of the protocol's test views, evenly spaced
       (0 keeps them all).
+    - `downscale`: area-average `downscale x downscale` blocks of the 504x378 images and
+      divide the focal length by it (see the module docstring); 1 keeps the protocol's images.
 
     **Returns:**
 
@@ -118,11 +129,16 @@ def load_llff(scene_dir: Path, *, num_train_views: int, max_test_views: int = 0)
                 f"{expected[0]:.0f}x{expected[1]:.0f}. Use the images_{IMAGE_FACTOR} folder that came "
                 "with these poses."
             )
+        check_factor(downscale, height, width, paths[0])
+        focal, intrinsics = downscale_centred_camera(
+            full_focal / IMAGE_FACTOR, height, width, downscale, len(ids)
+        )
         return Views(
-            images=np.stack([to_float(image)[..., :3] for image in images]),
+            images=np.stack([downscale_image(image[..., :3], downscale) for image in images]),
             camtoworlds=camtoworlds[ids].astype(np.float32),
-            focal=full_focal / IMAGE_FACTOR,
+            focal=focal,
             ids=tuple(ids),
+            intrinsics=intrinsics,
             ndc=True,
         )
 

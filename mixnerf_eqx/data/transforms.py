@@ -8,6 +8,11 @@ top level or in each frame (a frame's own values win); instant-ngp's `camera_ang
 image centre. Lens distortion (`k1` to `k4`, `p1`, `p2`) is ignored, with a warning; fisheye
 and equirectangular cameras are refused.
 
+A `downscale` factor (`data.image_downscale`) area-averages the stored images (straight RGBA
+before compositing) and scales the intrinsics to match; a side that it does not divide loses
+its remainder, half from each end, and the principal point moves with the crop (see
+`mixnerf_eqx.data._downscale`).
+
 Frames are ordered by file name (numbers by value). As in LLFF, every 8th frame is held out
 for testing and `n` of the others, evenly spaced, train. RGBA images are composited on white
 (and rendered on white); RGB images have no background colour.
@@ -27,9 +32,9 @@ import numpy as np
 
 from .._rays import intrinsic_matrix
 from ._dataset import Dataset, Views
+from ._downscale import check_factor, downscale_image, downscale_intrinsics
 from ._errors import DatasetError
 from ._files import (
-    area_downsample,
     check_same_size,
     composite_on_white,
     natural_key,
@@ -143,7 +148,8 @@ def load_transforms(
     - `num_train_views`: the number of training views, picked evenly from the frames that
       are not held out.
     - `max_test_views`: keep only this many of the held-out views, evenly spaced (0: all).
-    - `downscale`: area-downsample the images (and scale the intrinsics) by this factor.
+    - `downscale`: area-average `downscale x downscale` blocks of the images and scale the
+      intrinsics to match (see the module docstring); 1 keeps the stored images.
     - `bounds`: `(near, far)`; `None` derives them from the cameras (`default_bounds`).
 
     **Returns:**
@@ -180,14 +186,11 @@ def load_transforms(
         for i in ids:
             image_path, image = paths[i], raw_images[i]
             height, width = image.shape[:2]
-            if height % downscale or width % downscale:
-                raise DatasetError(
-                    f"{image_path}: a {width}x{height} image cannot be downsampled by {downscale} exactly; "
-                    "choose a data.image_downscale that divides both sides."
-                )
+            check_factor(downscale, height, width, image_path)
             k = _frame_intrinsics(frames[i], meta, width, height, path, image_path)
-            k[:2, :] /= downscale
-            pixels = area_downsample(image, downscale)
+            if downscale > 1:
+                k = downscale_intrinsics(k, height, width, downscale)
+            pixels = downscale_image(image, downscale)
             images.append(composite_on_white(pixels) if has_alpha else pixels[..., :3])
             intrinsics.append(k)
         intrinsics = np.stack(intrinsics)

@@ -285,3 +285,31 @@ def write_transforms(
     meta = intrinsics | {"camera_model": "OPENCV", "frames": frames[::-1]}
     (scene_dir / "transforms.json").write_text(json.dumps(meta))
     return {"poses": poses, "pixels": pixels, "meta": meta}
+
+
+# --- Downscaling references (data.image_downscale) ----------------------------------------
+
+
+def crop_offsets(height: int, width: int, factor: int) -> tuple[int, int]:
+    """The documented crop: half of each side's remainder from the top (left), rounded down."""
+    return (height % factor) // 2, (width % factor) // 2
+
+
+def block_average(array: np.ndarray, factor: int) -> np.ndarray:
+    """Float64 reference of an image (or mask) downscaled by `factor`: each side's remainder
+    cropped as `crop_offsets` says, then the mean over `factor x factor` blocks."""
+    height, width = array.shape[:2]
+    top, left = crop_offsets(height, width, factor)
+    out_height, out_width = height // factor, width // factor
+    cropped = np.asarray(array, np.float64)[top : top + out_height * factor, left : left + out_width * factor]
+    return cropped.reshape(out_height, factor, out_width, factor, *array.shape[2:]).mean(axis=(1, 3))
+
+
+def block_centres(height: int, width: int, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous pixel coordinates `(rows, cols)`, in the `height x width` image, of the
+    centres of the blocks that the downscaled image's pixels average (pixel `i` spans
+    `[i, i + 1)`)."""
+    top, left = crop_offsets(height, width, factor)
+    rows = top + factor * (np.arange(height // factor) + 0.5)
+    cols = left + factor * (np.arange(width // factor) + 0.5)
+    return np.meshgrid(rows, cols, indexing="ij")

@@ -10,7 +10,16 @@ import time
 
 import numpy as np
 import pytest
-from _writers import LEGO, blender_reference_image, random_pixels, truncate, write_blender, write_png
+from _writers import (
+    LEGO,
+    blender_reference_image,
+    block_average,
+    block_centres,
+    random_pixels,
+    truncate,
+    write_blender,
+    write_png,
+)
 from PIL import Image
 
 from mixnerf_eqx.data import DatasetError, load_blender, rays_for_views
@@ -112,6 +121,86 @@ def test_full_size_images_are_preferred_to_downsampled_copies(scene):
         np.testing.assert_allclose(
             dataset.test.images[index], blender_reference_image(small[index], 1), atol=1e-6
         )
+
+
+# --- data.image_downscale ---------------------------------------------------------------------
+
+
+def _check_rays_through_block_centres(views, poses, full_height, full_width, camera_angle_x, factor):
+    """Points on each ray project, with the full-size (800x800-like) camera of the written
+    scene, onto the centre of the ray's block: `2 x factor` full-size pixels on a side, after
+    the documented crop of the half-size image."""
+    rays = rays_for_views(views, 2.0, 6.0)
+    focal = 0.5 * full_width / math.tan(0.5 * camera_angle_x)
+    rows, cols = block_centres(full_height // 2, full_width // 2, factor)
+    for position, frame in enumerate(views.ids):
+        pose = poses[frame]
+        for t in (2.5, 5.0):
+            points = np.asarray(rays.origins[position], np.float64) + t * np.asarray(
+                rays.directions[position], np.float64
+            )
+            camera = (points - pose[:, 3]) @ pose[:, :3]  # world to OpenGL camera: R^T (p - c)
+            np.testing.assert_allclose(camera[..., 2], -t, atol=1e-5)
+            u = full_width / 2 + focal * camera[..., 0] / -camera[..., 2]
+            v = full_height / 2 - focal * camera[..., 1] / -camera[..., 2]
+            np.testing.assert_allclose(u, 2 * cols, atol=1e-4)
+            np.testing.assert_allclose(v, 2 * rows, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "height,width,factor,centred",
+    [
+        (24, 40, 2, True),  # 12x20 after halving: divides both sides
+        (24, 40, 3, True),  # remainders 0 and 2: one column off each side
+        (32, 40, 5, False),  # 16x20: remainder 1, the odd row off the bottom
+    ],
+)
+def test_downscale(tmp_path, height, width, factor, centred):
+    written = write_blender(tmp_path / "toy", num_train=2, num_test=3, height=height, width=width)
+    full = load_blender(tmp_path / "toy", num_train_views=2)
+    dataset = load_blender(tmp_path / "toy", num_train_views=2, downscale=factor)
+    out_shape = (height // 2 // factor, width // 2 // factor, 3)
+    for views, full_views, split in ((dataset.train, full.train, "train"), (dataset.test, full.test, "test")):
+        assert views.ids == full_views.ids
+        assert views.images.shape == (views.num_views, *out_shape)
+        for position, frame in enumerate(views.ids):
+            # The protocol's image (straight RGBA halved, composited on white), then averaged.
+            expected = block_average(blender_reference_image(written[split]["pixels"][frame], 2), factor)
+            np.testing.assert_allclose(views.images[position], expected, atol=1e-6)
+            expected = block_average(full_views.images[position], factor)
+            np.testing.assert_allclose(views.images[position], expected, atol=1e-6)
+        # The focal length of the full-size renders over 2 x factor.
+        assert views.focal == pytest.approx(0.5 * width / math.tan(0.35) / (2 * factor), rel=1e-12)
+        assert (views.intrinsics is None) == centred
+        _check_rays_through_block_centres(views, written[split]["poses"], height, width, 0.7, factor)
+    assert (dataset.near, dataset.far, dataset.white_background) == (2.0, 6.0, True)
+
+
+@pytest.mark.parametrize("factor", [1, 3])
+def test_downscaled_copies_match_the_full_size_path(scene, factor):
+    scene_dir, written = scene
+    # Renders whose 2x2 blocks are uniform, so that exact half-size copies exist: the two
+    # paths then agree to the last bit, downscaled or not.
+    for index, pixels in enumerate(written["test"]["pixels"]):
+        small = pixels[::2, ::2]
+        write_png(scene_dir / "test" / f"r_{index}.png", np.kron(small, np.ones((2, 2, 1), np.uint8)))
+        write_png(scene_dir / "test_400" / f"r_{index}.png", small)
+    from_full = load_blender(scene_dir, num_train_views=1, downscale=factor)
+    (scene_dir / "test" / "r_0.png").unlink()
+    from_copies = load_blender(scene_dir, num_train_views=1, downscale=factor)
+    np.testing.assert_array_equal(from_copies.test.images, from_full.test.images)
+    assert from_copies.test.focal == from_full.test.focal
+    assert from_copies.test.images.shape == (9, 3 // factor, 4 // factor, 3)
+
+
+@pytest.mark.parametrize(
+    "factor,match",
+    [(0, "at least 1"), (4, r"r_0\.png: data\.image_downscale = 4 is larger than the 4x3 images")],
+)
+def test_unusable_downscale(scene, factor, match):
+    scene_dir, _ = scene
+    with pytest.raises(DatasetError, match=match):
+        load_blender(scene_dir, num_train_views=2, downscale=factor)
 
 
 # --- Bad input: one DatasetError that names the file -----------------------------------------
@@ -306,3 +395,18 @@ def test_lego_dietnerf_protocol():
     assert dataset.test.images.shape == (2, 400, 400, 3)
     expected = blender_reference_image(np.asarray(Image.open(LEGO / "test" / "r_192.png")), 2)
     np.testing.assert_allclose(dataset.test.images[1], expected, atol=1e-6)
+
+
+@needs_lego
+def test_lego_downscaled_through_the_copies():
+    # Test view 199 exists only in test_400/, so the split is read from the copies; training
+    # view 0 from the 800x800 render. Both are the factor-1 images averaged over 8x8 blocks.
+    full = load_blender(LEGO, num_train_views=1, max_test_views=2)
+    dataset = load_blender(LEGO, num_train_views=1, max_test_views=2, downscale=8)
+    assert dataset.test.ids == (0, 199)
+    for views, full_views in ((dataset.train, full.train), (dataset.test, full.test)):
+        assert views.images.shape == (views.num_views, 50, 50, 3)
+        expected = full_views.images.astype(np.float64).reshape(-1, 50, 8, 50, 8, 3).mean(axis=(2, 4))
+        np.testing.assert_allclose(views.images, expected, atol=1e-6)
+        assert views.focal == pytest.approx(full_views.focal / 8, rel=1e-12)
+        assert views.intrinsics is None

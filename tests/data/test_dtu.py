@@ -6,7 +6,16 @@ from known parts, the camera centre `-R^T t`, and pinhole reprojection of points
 
 import numpy as np
 import pytest
-from _writers import dtu_cameras_known, projection, truncate, write_dtu, write_png
+from _writers import (
+    block_average,
+    block_centres,
+    crop_offsets,
+    dtu_cameras_known,
+    projection,
+    truncate,
+    write_dtu,
+    write_png,
+)
 
 from mixnerf_eqx.data import DatasetError, load_dtu, rays_for_views
 from mixnerf_eqx.data._poses import decompose_projection
@@ -137,6 +146,88 @@ def test_full_size_images_are_downsampled(tmp_path):
     expected_k = written["K"][25].copy()
     expected_k[:2] /= 4
     np.testing.assert_allclose(dataset.train.intrinsics[0], expected_k, rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def odd_scan(tmp_path_factory):
+    """A scan of 22x17 images, whose sides leave remainders for most factors."""
+    root = tmp_path_factory.mktemp("dtu_odd")
+    scan_dir, written = write_dtu(root, width=22, height=17, seed=3)
+    return root, scan_dir, written
+
+
+def _check_rays_through_block_centres(views, written, factor, near, far):
+    """Points on the rays project, with the written projection matrices, onto the centres of
+    the rays' blocks in the 22x17 images (after the documented crop)."""
+    rays = rays_for_views(views, near, far)
+    origins = np.asarray(rays.origins, np.float64)
+    directions = np.asarray(rays.directions, np.float64)
+    true_centres = np.stack([-written["R"][i].T @ written["t"][i] for i in views.ids])
+    scale, rotation, shift = _similarity(true_centres, views.camtoworlds[:, :, 3].astype(np.float64))
+    rows, cols = block_centres(17, 22, factor)
+    for t in (0.7, 3.0):
+        world = (origins + t * directions - shift) @ rotation / scale
+        for index, view in enumerate(views.ids):
+            homogeneous = np.concatenate([world[index], np.ones(world.shape[1:3] + (1,))], axis=-1)
+            pixels = homogeneous @ written["P"][f"world_mat_{view}"][:3].T
+            np.testing.assert_allclose(pixels[..., 0] / pixels[..., 2], cols, atol=2e-3)
+            np.testing.assert_allclose(pixels[..., 1] / pixels[..., 2], rows, atol=2e-3)
+
+
+# Remainders of 17 and 22: (1, 0), (2, 1), (1, 2) and (2, 2).
+@pytest.mark.parametrize("factor", [2, 3, 4, 5])
+def test_downscale(odd_scan, factor):
+    root, scan_dir, written = odd_scan
+    full = _load(root, scan_dir, num_train_views=3, max_test_views=5)
+    dataset = _load(root, scan_dir, num_train_views=3, max_test_views=5, downscale=factor)
+    top, left = crop_offsets(17, 22, factor)
+    for views, full_views in ((dataset.train, full.train), (dataset.test, full.test)):
+        ids = list(views.ids)
+        assert ids == list(full_views.ids)
+        assert views.images.shape == (len(ids), 17 // factor, 22 // factor, 3)
+        expected = np.stack([block_average(written["images"][i], factor) for i in ids]) / 255.0
+        np.testing.assert_allclose(views.images, expected, atol=1e-6)
+        # The principal point moves with the crop; rows 0 and 1 shrink by the factor.
+        k = written["K"][ids].copy()
+        k[:, 0, 2] -= left
+        k[:, 1, 2] -= top
+        k[:, :2] /= factor
+        np.testing.assert_allclose(views.intrinsics, k, rtol=1e-6)
+        assert views.focal == pytest.approx(float(np.mean(k[:, 0, 0])), rel=1e-6)
+        np.testing.assert_array_equal(views.camtoworlds, full_views.camtoworlds)
+        assert views.origin_plane_z == 0.0
+        _check_rays_through_block_centres(views, written, factor, dataset.near, dataset.far)
+    assert dataset.train.masks is None
+    # On the object where more than half of the block is.
+    expected = np.stack([block_average(written["masks"][i], factor) > 0.5 for i in dataset.test.ids])
+    np.testing.assert_array_equal(dataset.test.masks, expected)
+    np.testing.assert_array_equal(
+        dataset.test.masks, np.stack([block_average(m, factor) > 0.5 for m in full.test.masks])
+    )
+
+
+def test_full_size_images_are_downsampled_then_downscaled(tmp_path):
+    scan_dir, written = write_dtu(tmp_path, width=32, height=24, mask_layout=None)
+    with pytest.warns(UserWarning, match="no DTU object masks"):
+        dataset = load_dtu(scan_dir, num_train_views=2, full_size=(32, 24), factor=4, downscale=2)
+    assert dataset.train.images.shape == (2, 3, 4, 3)
+    raw = written["images"][25].astype(np.float64) / 255.0
+    np.testing.assert_allclose(
+        dataset.train.images[0], raw.reshape(3, 8, 4, 8, 3).mean(axis=(1, 3)), atol=1e-6
+    )
+    expected_k = written["K"][25].copy()
+    expected_k[:2] /= 8
+    np.testing.assert_allclose(dataset.train.intrinsics[0], expected_k, rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "factor,match",
+    [(0, "at least 1"), (13, r"000025\.png: data\.image_downscale = 13 is larger than the 16x12 images")],
+)
+def test_unusable_downscale(scan, factor, match):
+    root, scan_dir, _ = scan
+    with pytest.raises(DatasetError, match=match):
+        _load(root, scan_dir, downscale=factor)
 
 
 def test_missing_masks_warn_or_fail(tmp_path):

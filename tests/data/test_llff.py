@@ -11,7 +11,16 @@ before `img2`, and each image must keep the pose of its own row.
 
 import numpy as np
 import pytest
-from _writers import FERN, random_pixels, truncate, write_llff, write_png
+from _writers import (
+    FERN,
+    block_average,
+    block_centres,
+    crop_offsets,
+    random_pixels,
+    truncate,
+    write_llff,
+    write_png,
+)
 
 from mixnerf_eqx.data import DatasetError, load_llff, rays_for_views
 from mixnerf_eqx.data._splits import evenly_spaced, holdout_split
@@ -72,9 +81,9 @@ def _check_ndc(views):
     np.testing.assert_allclose(np.asarray(rays.directions), d_ref, atol=2e-5)
     np.testing.assert_array_equal(np.asarray(rays.origins)[..., 2], -1.0)
     np.testing.assert_allclose(np.asarray(rays.directions)[..., 2], 2.0, atol=1e-6)
-    # View directions stay the world directions (unit length).
-    unit = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
-    np.testing.assert_allclose(np.asarray(rays.viewdirs), unit, atol=1e-6)
+    # View directions stay the world directions from before the NDC mapping, unnormalised
+    # (camera depth 1), as in the released code.
+    np.testing.assert_allclose(np.asarray(rays.viewdirs), directions, atol=1e-6)
 
 
 def test_llff_poses_follow_nerf_loader(tmp_path):
@@ -137,6 +146,85 @@ def test_unpadded_names_keep_their_poses(tmp_path):
     loaded_distances = np.linalg.norm(loaded[:, None] - loaded[None], axis=-1)
     scale = loaded_distances[0, 1] / true_distances[0, 1]
     np.testing.assert_allclose(loaded_distances, scale * true_distances, atol=1e-5)
+
+
+# --- data.image_downscale ---------------------------------------------------------------------
+
+
+def _unit(vectors):
+    return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
+
+
+def _check_block_rays(small, full, factor, near=1.0):
+    """The rays of `small` (`full` downscaled by `factor`) are the rays through the centres of
+    their blocks in `full`: the same world directions as the mean of the block's camera
+    directions in `full`, and the NDC rays of a float64 pinhole camera through those centres."""
+    rays = rays_for_views(small, 0.0, 1.0)
+    full_rays = rays_for_views(full, 0.0, 1.0)
+    camtoworlds = full.camtoworlds.astype(np.float64)
+    # Full-image directions rescaled to a camera depth of 1 (affine in the pixel position).
+    directions = _unit(np.asarray(full_rays.viewdirs, np.float64))
+    forward = -camtoworlds[:, None, None, :, 2]
+    directions = directions / np.sum(directions * forward, axis=-1, keepdims=True)
+    expected = np.stack([block_average(d, factor) for d in directions])
+    np.testing.assert_allclose(_unit(np.asarray(rays.viewdirs, np.float64)), _unit(expected), atol=1e-6)
+    # An independent pinhole camera at the full image's resolution, principal point at its centre.
+    rows, cols = block_centres(full.height, full.width, factor)
+    camera = np.stack(
+        [
+            (cols - full.width / 2) / full.focal,
+            -(rows - full.height / 2) / full.focal,
+            -np.ones_like(cols),
+        ],
+        axis=-1,
+    )
+    world = np.einsum("vij,hwj->vhwi", camtoworlds[:, :3, :3], camera)
+    origins = np.broadcast_to(camtoworlds[:, None, None, :, 3], world.shape)
+    o_ref, d_ref = _nerf_ndc(origins, world, full.focal / factor, small.height, small.width, near)
+    np.testing.assert_allclose(np.asarray(rays.origins), o_ref, atol=2e-5)
+    np.testing.assert_allclose(np.asarray(rays.directions), d_ref, atol=2e-5)
+
+
+@pytest.mark.parametrize(
+    "height,width,factor,centred",
+    [
+        (12, 18, 3, True),  # divides both sides
+        (14, 20, 4, True),  # remainders 2 and 0: one row off the top and one off the bottom
+        (13, 20, 3, False),  # remainders 1 and 2: the odd row comes off the bottom
+    ],
+)
+def test_downscale(tmp_path, height, width, factor, centred):
+    written = write_llff(tmp_path / "scene", height=height, width=width)
+    full = load_llff(tmp_path / "scene", num_train_views=3)
+    dataset = load_llff(tmp_path / "scene", num_train_views=3, downscale=factor)
+    assert (dataset.near, dataset.far, dataset.frustum) == (0.0, 1.0, "cylinder")
+    for views, full_views in ((dataset.train, full.train), (dataset.test, full.test)):
+        assert views.ids == full_views.ids and views.ndc
+        assert views.images.shape == (3, height // factor, width // factor, 3)
+        assert views.images.dtype == np.float32
+        for position, view in enumerate(views.ids):
+            expected = block_average(written["pixels"][view], factor) / 255.0
+            np.testing.assert_allclose(views.images[position], expected, atol=1e-6)
+        assert views.focal == pytest.approx(40.0 / 8 / factor, rel=1e-12)
+        if centred:
+            assert views.intrinsics is None
+        else:
+            top, left = crop_offsets(height, width, factor)
+            # The principal point stays at the centre of the 8x image, shifted by the crop.
+            cx, cy = (width / 2 - left) / factor, (height / 2 - top) / factor
+            k = [[5.0 / factor, 0.0, cx], [0.0, 5.0 / factor, cy]]
+            np.testing.assert_allclose(views.intrinsics[:, :2], np.broadcast_to(k, (3, 2, 3)), rtol=1e-6)
+            assert views.intrinsics[0, 1, 2] != views.height / 2
+        np.testing.assert_array_equal(views.camtoworlds, full_views.camtoworlds)
+        _check_block_rays(views, full_views, factor)
+
+
+@pytest.mark.parametrize("factor", [0, -2, 7])
+def test_unusable_downscale(tmp_path, factor):
+    write_llff(tmp_path / "scene")
+    match = "at least 1" if factor < 1 else r"image001\.png: data\.image_downscale = 7 is larger than the 8x6"
+    with pytest.raises(DatasetError, match=match):
+        load_llff(tmp_path / "scene", num_train_views=3, downscale=factor)
 
 
 # --- Bad input -------------------------------------------------------------------------------
@@ -223,3 +311,18 @@ def test_real_fern():
     assert rows.shape == (20, 17)
     assert dataset.train.focal == pytest.approx(rows[0, 14] / 8)
     _check_ndc(dataset.train)
+
+
+@needs_fern
+def test_real_fern_downscaled_by_4():
+    # 504x378 over 4: 126 columns; 378 = 4 * 94 + 2 loses row 0 and row 377.
+    full = load_llff(FERN, num_train_views=1, max_test_views=1)
+    dataset = load_llff(FERN, num_train_views=1, max_test_views=1, downscale=4)
+    rows = np.load(FERN / "poses_bounds.npy")
+    for views, full_views in ((dataset.train, full.train), (dataset.test, full.test)):
+        assert views.images.shape == (1, 94, 126, 3)
+        assert views.focal == pytest.approx(rows[0, 14] / 32, rel=1e-12)
+        assert views.intrinsics is None
+        expected = full_views.images[0, 1:377].astype(np.float64).reshape(94, 4, 126, 4, 3).mean(axis=(1, 3))
+        np.testing.assert_allclose(views.images[0], expected, atol=1e-6)
+    _check_block_rays(dataset.train, full.train, 4)

