@@ -32,6 +32,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -47,7 +50,9 @@ from _runs import (  # noqa: E402
     typechecking,
 )
 
-from mixnerf_eqx import evaluate, load_config  # noqa: E402
+from mixnerf_eqx import LossWeights, evaluate, load_config  # noqa: E402
+from mixnerf_eqx._loss import loss_terms  # noqa: E402
+from mixnerf_eqx._schedule import linear_ramp  # noqa: E402
 from mixnerf_eqx.data import load_dataset  # noqa: E402
 from mixnerf_eqx.metrics import lpips_available  # noqa: E402
 
@@ -81,6 +86,28 @@ PROTOCOL: dict[str, tuple[str, tuple[str, ...]]] = {
     "fern": ("configs/llff3.toml", ("data.image_downscale=9", "train.anneal_steps=50")),
 }
 METHODS = {"mixnerf": (), "mipnerf": MACROS["@baseline"]}
+# Ablations of MixNeRF (`--ablations NAME ...`): the protocol's MixNeRF with these overrides,
+# recorded as method `mixnerf-NAME` next to the two methods.
+ABLATIONS = {
+    # Only the colour NLL (lambda_D = lambda_hat_C = 0).
+    "colour-only": ("loss.lambda_depth=0.0", "loss.lambda_regen=0.0"),
+    # No depth NLL / no regenerated-colour NLL.
+    "no-depth": ("loss.lambda_depth=0.0",),
+    "no-regen": ("loss.lambda_regen=0.0",),
+    # lambda_C held at its final value 1e-3 from the first step (no ramp from 4.0).
+    "no-ramp": ("loss.lambda_colour_start=0.001",),
+    # The NLLs applied to both levels instead of the coarse one only.
+    "both-levels": ('loss.nll_levels="both"',),
+    # No gradient clipping (element-wise or global-norm).
+    "no-clip": ("optim.grad_max_value=0.0", "optim.grad_max_norm=0.0"),
+}
+
+
+def method_overrides(method: str) -> tuple[str, ...]:
+    """The overrides that make `method` (`mixnerf`, `mipnerf` or `mixnerf-ABLATION`)."""
+    if method in METHODS:
+        return METHODS[method]
+    return ABLATIONS[method.removeprefix("mixnerf-")]
 
 
 def run_key(scene: str, method: str, seed: int) -> str:
@@ -103,7 +130,7 @@ def read_runs(path: Path) -> list[dict[str, Any]]:
 def protocol_overrides(scene: str, method: str, seed: int, data_dir: str | None) -> list[str]:
     """Everything the protocol sets for one run, but its length (`train.max_steps`)."""
     _, protocol = PROTOCOL[scene]
-    return [*COMMON, *protocol, *METHODS[method], f"train.seed={seed}", *data_dir_override(data_dir)]
+    return [*COMMON, *protocol, *method_overrides(method), f"train.seed={seed}", *data_dir_override(data_dir)]
 
 
 def _score(model, dataset, views, chunk: int, with_lpips: bool) -> dict[str, Any]:
@@ -177,6 +204,99 @@ def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> d
     }
 
 
+# ----------------------------------------------------------------------------- diagnosis
+
+
+def _gradient_norm(tree) -> float:
+    leaves = jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_array))
+    return float(jnp.sqrt(sum(jnp.sum(leaf.astype(jnp.float32) ** 2) for leaf in leaves)))
+
+
+def _weighted_term(model, name, rays, target, lambdas, weights, key, mask=None):
+    """One weighted term of the objective on `rays` (those of `mask`, if given)."""
+    if mask is not None:
+        chosen = jnp.nonzero(mask, size=int(mask.sum()))[0]
+        rays = jax.tree_util.tree_map(lambda x: x[chosen], rays)
+        target = target[chosen]
+    lambda_colour, lambda_depth, lambda_regen, coarse = lambdas
+    terms = loss_terms(model(rays, key=key), model, rays, target, jnp.asarray(lambda_colour), weights)
+    if name == "squared_error":
+        return 3 * (terms.mse_fine + coarse * terms.mse_coarse)
+    scale = {"nll_colour": lambda_colour, "nll_depth": lambda_depth, "nll_regen": lambda_regen}[name]
+    return scale * getattr(terms, name)
+
+
+def diagnose(scene: str, seed: int, steps: list[int], args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Where MixNeRF's objective pulls during training: at each of `steps`, on one fixed batch
+    of training rays rendered with training randomness, the gradient norm of each weighted
+    term (the squared error of both levels, lambda_C NLL_C, lambda_D NLL_D, lambda_hat_C
+    NLL_hat_C) and of the weighted colour NLL restricted to the rays whose coarse opacity is
+    below 0.1 and above 0.5, with the mean coarse opacity and the median coarse density."""
+    base = str(REPO / PROTOCOL[scene][0])
+    overrides = [*protocol_overrides(scene, "mixnerf", seed, args.data_dir), *args.set]
+    config = load_config(base, overrides)
+    dataset = load_dataset(config.data)
+    pixels = dataset.train.num_views * dataset.train.height * dataset.train.width
+    max_steps = math.ceil(args.epochs * pixels / config.train.batch_size)
+    config = load_config(base, [*overrides, f"train.max_steps={max_steps}"])
+    run = TrainingRun(config, dataset)
+    run.compile()
+    data = run.data
+    count = min(config.train.batch_size, data.rgb.shape[1])
+    rays = jax.tree_util.tree_map(lambda x: x[0, :: max(1, data.rgb.shape[1] // count)][:count], data.rays)
+    target = data.rgb[0, :: max(1, data.rgb.shape[1] // count)][:count]
+    loss = config.loss
+    key = jax.random.key(seed + 1)
+    rows = []
+    for step in steps:
+        while run.step < step:
+            run.advance()
+        lambda_colour = float(
+            linear_ramp(step + 1, loss.lambda_colour_start, loss.lambda_colour_end, loss.lambda_colour_steps)
+        )
+        outputs = run.model(rays, key=key)
+        opacity = outputs.coarse.acc
+        weights = LossWeights(
+            coarse_mse=loss.coarse_mse_weight,
+            colour_nll=True,
+            depth_nll=loss.lambda_depth,
+            regen_nll=loss.lambda_regen,
+            nll_levels=loss.nll_levels,
+        )
+
+        row: dict[str, Any] = {
+            "step": step,
+            "lambda_colour": lambda_colour,
+            "mean_coarse_opacity": float(jnp.mean(opacity)),
+            "median_coarse_density": float(jnp.median(outputs.coarse.field.density)),
+        }
+        lambdas = (lambda_colour, loss.lambda_depth, loss.lambda_regen, loss.coarse_mse_weight)
+        grad = eqx.filter_grad(_weighted_term)
+        for name in ("squared_error", "nll_colour", "nll_depth", "nll_regen"):
+            row[f"grad_{name}"] = _gradient_norm(grad(run.model, name, rays, target, lambdas, weights, key))
+        for label, mask in (("empty", opacity < 0.1), ("opaque", opacity > 0.5)):
+            row[f"rays_{label}"] = int(mask.sum())
+            # Per ray: the term is a mean over the subset, so scale back to the batch's share.
+            share = float(mask.sum()) / count
+            row[f"grad_nll_colour_{label}_rays"] = (
+                share
+                * _gradient_norm(grad(run.model, "nll_colour", rays, target, lambdas, weights, key, mask))
+                if mask.any()
+                else 0.0
+            )
+        rows.append(row)
+        print(
+            f"  {scene} step {step}: lambda_C {lambda_colour:.3g}, opacity {row['mean_coarse_opacity']:.3f}, "
+            f"|grad| squared error {row['grad_squared_error']:.3g}, "
+            f"lambda_C NLL_C {row['grad_nll_colour']:.3g} "
+            f"(empty rays {row['grad_nll_colour_empty_rays']:.3g} of {row['rays_empty']}, opaque rays "
+            f"{row['grad_nll_colour_opaque_rays']:.3g} of {row['rays_opaque']}), lambda_D NLL_D "
+            f"{row['grad_nll_depth']:.3g}, lambda_hat_C NLL_hat_C {row['grad_nll_regen']:.3g}",
+            flush=True,
+        )
+    return rows
+
+
 # ----------------------------------------------------------------------------- the report
 
 
@@ -203,7 +323,8 @@ def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
     ]
     summary: dict[str, Any] = {}
     for scene in PROTOCOL:
-        for method in METHODS:
+        methods = [*METHODS, *sorted({r["method"] for r in runs} - set(METHODS))]
+        for method in methods:
             group = sorted(
                 (r for r in runs if r["scene"] == scene and r["method"] == method), key=lambda r: r["seed"]
             )
@@ -253,7 +374,9 @@ def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
             continue
         gap = mix["end_psnr"][0] - base["end_psnr"][0]
         spread = max(mix["end_psnr"][1], base["end_psnr"][1])
-        if gap > spread:
+        if min(len(mix["seeds"]), len(base["seeds"])) < 2:
+            verdict = "one seed: no spread yet"
+        elif gap > spread:
             verdict = "MixNeRF ahead by more than the spread"
         elif gap > 0:
             verdict = "MixNeRF ahead, within the spread"
@@ -273,7 +396,18 @@ def plot(runs: list[dict[str, Any]], out: Path, tag: str) -> None:
     except ImportError:
         print("matplotlib is not importable: no plots")
         return
-    colours = {"mixnerf": "tab:red", "mipnerf": "tab:blue"}
+    palette = [
+        "tab:red",
+        "tab:blue",
+        "tab:green",
+        "tab:orange",
+        "tab:purple",
+        "tab:brown",
+        "tab:gray",
+        "tab:olive",
+    ]
+    names = [*METHODS, *sorted({r["method"] for r in runs} - set(METHODS))]
+    colours = dict(zip(names, palette * (1 + len(names) // len(palette)), strict=False))
     for scene in PROTOCOL:
         group = [r for r in runs if r["scene"] == scene]
         if not group:
@@ -321,7 +455,14 @@ def main() -> None:
     )
     parser.add_argument("--data-dir", default=None, help="dataset root (default: MIXNERF_DATA_DIR)")
     parser.add_argument("--scenes", nargs="+", default=list(PROTOCOL), choices=list(PROTOCOL))
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
+    parser.add_argument(
+        "--ablations",
+        nargs="*",
+        default=[],
+        choices=list(ABLATIONS),
+        help="also run these MixNeRF ablations (recorded as method mixnerf-NAME)",
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--epochs", type=float, default=100.0, help="epochs of the training pixels per run")
     parser.add_argument(
@@ -333,10 +474,29 @@ def main() -> None:
     )
     parser.add_argument("--tag", default=None, help="result file tag (default: the backend, e.g. cpu)")
     parser.add_argument("--report", action="store_true", help="only print the table and write the plots")
+    parser.add_argument(
+        "--diagnose",
+        nargs="*",
+        type=int,
+        default=None,
+        metavar="STEP",
+        help="instead of the table: MixNeRF's per-term gradient norms at these steps (first seed)",
+    )
     args = parser.parse_args()
     if args.epochs <= 0 or args.evals < 1 or args.chunk < 1:
         parser.error("--epochs must be positive, --evals and --chunk at least 1")
     tag = args.tag or platform_tag()
+    if args.diagnose is not None:
+        steps = sorted(set(args.diagnose or [0, 25, 50, 100, 200, 400]))
+        diagnosis = {
+            "command": " ".join(sys.argv),
+            "machine": machine_info(),
+            "scenes": {scene: diagnose(scene, args.seeds[0], steps, args) for scene in args.scenes},
+        }
+        out = RESULTS / f"fidelity_{tag}_diagnosis.json"
+        out.write_text(json.dumps(diagnosis, indent=2))
+        print(f"written to {out}")
+        return
     path = RESULTS / f"fidelity_{tag}.jsonl"
     if not args.report:
         done = {r["key"] for r in read_runs(path)}
@@ -344,7 +504,7 @@ def main() -> None:
             (scene, method, seed)
             for seed in args.seeds
             for scene in args.scenes
-            for method in args.methods
+            for method in [*args.methods, *(f"mixnerf-{name}" for name in args.ablations)]
             if run_key(scene, method, seed) not in done
         ]
         print(f"{len(todo)} runs to do ({len(done)} already in {path.name})", flush=True)
