@@ -50,7 +50,7 @@ from _runs import (  # noqa: E402
     typechecking,
 )
 
-from mixnerf_eqx import LossWeights, evaluate, load_config  # noqa: E402
+from mixnerf_eqx import evaluate, load_config  # noqa: E402
 from mixnerf_eqx._loss import loss_terms  # noqa: E402
 from mixnerf_eqx._schedule import linear_ramp  # noqa: E402
 from mixnerf_eqx.data import load_dataset  # noqa: E402
@@ -226,14 +226,17 @@ def _weighted_term(model, name, rays, target, lambdas, weights, key, mask=None):
     return scale * getattr(terms, name)
 
 
-def diagnose(scene: str, seed: int, steps: list[int], args: argparse.Namespace) -> list[dict[str, Any]]:
-    """Where MixNeRF's objective pulls during training: at each of `steps`, on one fixed batch
-    of training rays rendered with training randomness, the gradient norm of each weighted
-    term (the squared error of both levels, lambda_C NLL_C, lambda_D NLL_D, lambda_hat_C
-    NLL_hat_C) and of the weighted colour NLL restricted to the rays whose coarse opacity is
-    below 0.1 and above 0.5, with the mean coarse opacity and the median coarse density."""
+def diagnose(
+    scene: str, method: str, seed: int, steps: list[int], args: argparse.Namespace
+) -> list[dict[str, Any]]:
+    """Where the objective pulls during training: at each of `steps`, on one fixed batch of
+    training rays rendered with training randomness, the gradient norm of each weighted term
+    (the squared error of both levels, lambda_C NLL_C, lambda_D NLL_D, lambda_hat_C NLL_hat_C;
+    for the baseline the squared error only) and of the weighted colour NLL restricted to the
+    rays whose coarse opacity is below 0.1 and above 0.5, with the mean coarse opacity and the
+    median coarse density."""
     base = str(REPO / PROTOCOL[scene][0])
-    overrides = [*protocol_overrides(scene, "mixnerf", seed, args.data_dir), *args.set]
+    overrides = [*protocol_overrides(scene, method, seed, args.data_dir), *args.set]
     config = load_config(base, overrides)
     dataset = load_dataset(config.data)
     pixels = dataset.train.num_views * dataset.train.height * dataset.train.width
@@ -256,13 +259,7 @@ def diagnose(scene: str, seed: int, steps: list[int], args: argparse.Namespace) 
         )
         outputs = run.model(rays, key=key)
         opacity = outputs.coarse.acc
-        weights = LossWeights(
-            coarse_mse=loss.coarse_mse_weight,
-            colour_nll=True,
-            depth_nll=loss.lambda_depth,
-            regen_nll=loss.lambda_regen,
-            nll_levels=loss.nll_levels,
-        )
+        weights = loss.weights()
 
         row: dict[str, Any] = {
             "step": step,
@@ -272,6 +269,17 @@ def diagnose(scene: str, seed: int, steps: list[int], args: argparse.Namespace) 
         }
         lambdas = (lambda_colour, loss.lambda_depth, loss.lambda_regen, loss.coarse_mse_weight)
         grad = eqx.filter_grad(_weighted_term)
+        if run.model.mixture is None:
+            row["grad_squared_error"] = _gradient_norm(
+                grad(run.model, "squared_error", rays, target, lambdas, weights, key)
+            )
+            rows.append(row)
+            print(
+                f"  {scene} {method} step {step}: opacity {row['mean_coarse_opacity']:.3f}, median density "
+                f"{row['median_coarse_density']:.3g}, |grad| squared error {row['grad_squared_error']:.3g}",
+                flush=True,
+            )
+            continue
         for name in ("squared_error", "nll_colour", "nll_depth", "nll_regen"):
             row[f"grad_{name}"] = _gradient_norm(grad(run.model, name, rays, target, lambdas, weights, key))
         for label, mask in (("empty", opacity < 0.1), ("opaque", opacity > 0.5)):
@@ -286,7 +294,8 @@ def diagnose(scene: str, seed: int, steps: list[int], args: argparse.Namespace) 
             )
         rows.append(row)
         print(
-            f"  {scene} step {step}: lambda_C {lambda_colour:.3g}, opacity {row['mean_coarse_opacity']:.3f}, "
+            f"  {scene} {method} step {step}: lambda_C {lambda_colour:.3g}, "
+            f"opacity {row['mean_coarse_opacity']:.3f}, median density {row['median_coarse_density']:.3g}, "
             f"|grad| squared error {row['grad_squared_error']:.3g}, "
             f"lambda_C NLL_C {row['grad_nll_colour']:.3g} "
             f"(empty rays {row['grad_nll_colour_empty_rays']:.3g} of {row['rays_empty']}, opaque rays "
@@ -480,7 +489,7 @@ def main() -> None:
         type=int,
         default=None,
         metavar="STEP",
-        help="instead of the table: MixNeRF's per-term gradient norms at these steps (first seed)",
+        help="instead of the table: per-term gradient norms and opacity at these steps (first seed)",
     )
     args = parser.parse_args()
     if args.epochs <= 0 or args.evals < 1 or args.chunk < 1:
@@ -491,7 +500,11 @@ def main() -> None:
         diagnosis = {
             "command": " ".join(sys.argv),
             "machine": machine_info(),
-            "scenes": {scene: diagnose(scene, args.seeds[0], steps, args) for scene in args.scenes},
+            "runs": {
+                f"{scene}/{method}": diagnose(scene, method, args.seeds[0], steps, args)
+                for scene in args.scenes
+                for method in args.methods
+            },
         }
         out = RESULTS / f"fidelity_{tag}_diagnosis.json"
         out.write_text(json.dumps(diagnosis, indent=2))
