@@ -133,6 +133,19 @@ def protocol_overrides(scene: str, method: str, seed: int, data_dir: str | None)
     return [*COMMON, *protocol, *method_overrides(method), f"train.seed={seed}", *data_dir_override(data_dir)]
 
 
+def protocol_run(scene: str, method: str, seed: int, args: argparse.Namespace):
+    """The config, dataset and overrides of one run: the protocol's settings, `--set`, and a
+    length of `args.epochs` epochs of the training pixels (`train.max_steps`, which also sets
+    the learning-rate decay, so the config is made again once the dataset is known)."""
+    base = str(REPO / PROTOCOL[scene][0])
+    overrides = [*protocol_overrides(scene, method, seed, args.data_dir), *args.set]
+    config = load_config(base, overrides)
+    dataset = load_dataset(config.data)
+    pixels = dataset.train.num_views * dataset.train.height * dataset.train.width
+    overrides.append(f"train.max_steps={math.ceil(args.epochs * pixels / config.train.batch_size)}")
+    return load_config(base, overrides), dataset, overrides
+
+
 def _score(model, dataset, views, chunk: int, with_lpips: bool) -> dict[str, Any]:
     scene = dataclasses.replace(dataset, test=views)
     means, _ = evaluate(model, scene, chunk=chunk, with_lpips=with_lpips)
@@ -141,16 +154,10 @@ def _score(model, dataset, views, chunk: int, with_lpips: bool) -> dict[str, Any
 
 def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
     """Trains one run and returns its record (curve included)."""
-    base = str(REPO / PROTOCOL[scene][0])
-    overrides = [*protocol_overrides(scene, method, seed, args.data_dir), *args.set]
-    config = load_config(base, overrides)
-    dataset = load_dataset(config.data)
+    config, dataset, overrides = protocol_run(scene, method, seed, args)
     train_views = dataset.train
     pixels = train_views.num_views * train_views.height * train_views.width
-    # The run's length sets the learning-rate decay, so the config is made again with it.
-    steps = math.ceil(args.epochs * pixels / config.train.batch_size)
-    overrides.append(f"train.max_steps={steps}")
-    config = load_config(base, overrides)
+    steps = config.train.max_steps
     run = TrainingRun(config, dataset)
     compile_s = run.compile()
     points = sorted({max(1, round(steps * (i + 1) / args.evals)) for i in range(args.evals)})
@@ -235,13 +242,7 @@ def diagnose(
     for the baseline the squared error only) and of the weighted colour NLL restricted to the
     rays whose coarse opacity is below 0.1 and above 0.5, with the mean coarse opacity and the
     median coarse density."""
-    base = str(REPO / PROTOCOL[scene][0])
-    overrides = [*protocol_overrides(scene, method, seed, args.data_dir), *args.set]
-    config = load_config(base, overrides)
-    dataset = load_dataset(config.data)
-    pixels = dataset.train.num_views * dataset.train.height * dataset.train.width
-    max_steps = math.ceil(args.epochs * pixels / config.train.batch_size)
-    config = load_config(base, [*overrides, f"train.max_steps={max_steps}"])
+    config, dataset, _ = protocol_run(scene, method, seed, args)
     run = TrainingRun(config, dataset)
     run.compile()
     data = run.data
