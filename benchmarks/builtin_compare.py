@@ -1,92 +1,81 @@
 """MixNeRF against the mip-NeRF baseline on the built-in scene, with the same steps.
 
-    python benchmarks/builtin_compare.py [--config configs/builtin.toml] [section.key=value ...]
+    python benchmarks/builtin_compare.py [--config configs/builtin.toml] [--seeds 0 1] [section.key=value ...]
 
-Trains both (the baseline is the same config with the three NLL weights at zero), prints a
-table of test PSNR / SSIM / depth error and wall time, and writes it as JSON.
+Trains both with `mx.fit` (the baseline is the same config with `method = "mipnerf"`), prints
+a table of test PSNR / SSIM / depth error and wall time, and writes it as JSON
+(`benchmarks/results/builtin_compare_<backend>.json` unless `--out` says otherwise). Existing
+run folders under `--runs-root` are resumed.
 """
 
 import argparse
 import json
-import platform
 import time
 from pathlib import Path
 
-import jax
+import harness
 
-from mixnerf_eqx import load_config
-from mixnerf_eqx._train import fit
+import mixnerf_eqx as mx
 
-BASELINE = [
-    "loss.lambda_colour_start=0.0",
-    "loss.lambda_colour_end=0.0",
-    "loss.lambda_depth=0.0",
-    "loss.lambda_regen=0.0",
-]
+METHODS = {"mixnerf": [], "mipnerf": ["method=mipnerf"]}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--config", default="configs/builtin.toml")
-    parser.add_argument("--out", default="benchmarks/results/builtin_compare_cpu.json")
+    parser.add_argument(
+        "--out", default=None, help="JSON path (default: results/builtin_compare_<backend>.json)"
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument(
         "--runs-root", default="runs/compare", help="run dirs go here (existing ones are resumed)"
     )
-    parser.add_argument("overrides", nargs="*")
+    parser.add_argument("overrides", nargs="*", help="config overrides for both methods, section.key=value")
     args = parser.parse_args()
     rows = []
     for seed in args.seeds:
-        for name, extra in (("mixnerf", []), ("mipnerf", BASELINE)):
-            run_dir = f"{args.runs_root}/{name}_seed{seed}"
-            config = load_config(
+        for name, extra in METHODS.items():
+            run_dir = Path(args.runs_root) / f"{name}_seed{seed}"
+            config = mx.load_config(
                 args.config,
                 [
                     *args.overrides,
                     *extra,
                     f"train.seed={seed}",
-                    f'train.run_dir="{run_dir}"',
+                    f"train.run_dir={json.dumps(str(run_dir))}",
                     "train.eval_every=0",
                 ],
             )
-            start = time.perf_counter()
-            result = fit(config, resume=True, progress=False, write_renders=True)
+            started = time.perf_counter()
+            result = mx.fit(config, resume=True, progress=False, write_renders=True)
             rows.append(
                 {
                     "model": name,
                     "seed": seed,
-                    "seconds": time.perf_counter() - start,
+                    "seconds": time.perf_counter() - started,
                     "steps": result.metrics["step"],
                     **result.metrics["test"],
                 }
             )
             print(json.dumps(rows[-1]), flush=True)
-    header = ("model", "seed", "steps", "PSNR", "SSIM", "depth MAE", "seconds")
-    print("\n" + " ".join(f"{h:>9s}" for h in header))
-    for row in rows:
-        cells = (
-            row["model"],
-            row["seed"],
-            row["steps"],
-            row["psnr"],
-            row["ssim"],
-            row["depth_mae"],
-            row["seconds"],
-        )
-        print(" ".join(f"{c:>9.4g}" if isinstance(c, float) else f"{c!s:>9s}" for c in cells))
-    machine = {
-        "platform": platform.platform(),
-        "processor": platform.processor(),
-        "jax": jax.__version__,
-        "devices": [str(d) for d in jax.devices()],
-    }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(
-        json.dumps(
-            {"config": args.config, "overrides": args.overrides, "machine": machine, "rows": rows}, indent=2
-        )
+    print()
+    harness.print_table(
+        ("model", "seed", "steps", "PSNR", "SSIM", "depth MAE", "seconds"),
+        [
+            (
+                row["model"],
+                row["seed"],
+                row["steps"],
+                row["psnr"],
+                row["ssim"],
+                row.get("depth_mae"),
+                row["seconds"],
+            )
+            for row in rows
+        ],
     )
-    print(f"written to {args.out}")
+    out = Path(args.out) if args.out else harness.RESULTS / f"builtin_compare_{harness.platform_tag()}.json"
+    harness.write_json(out, {"config": args.config, "overrides": args.overrides, "rows": rows})
 
 
 if __name__ == "__main__":

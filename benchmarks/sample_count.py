@@ -12,31 +12,32 @@
 
 For each scene, each sample count N (N coarse + N fine samples per ray, the paper's "samples
 per ray at each level") and each variant (default: `mixnerf`, the scene's paper config, and
-`mipnerf`, the same with the NLL weights at zero), a model is trained for `--steps` steps (the
+`mipnerf`, the same with `method = "mipnerf"`), a model is trained for `--steps` steps (the
 schedule is set to that length: `train.max_steps = --steps`, with warm-up, lambda_C ramp and
 annealing cut to 1/10, 1/10 and 1/5 of it where longer), by the library's jitted step compiled
-ahead of time. Then every evaluation view (`--eval-views` evenly spaced test views, 0: all
-of the protocol's; `--eval-downscale` area-downsamples them, a proxy for cheap CPU runs) is
-rendered once by `render_frame`, after one warm-up render of the first view, and scored:
-PSNR, SSIM and LPIPS (where `mixnerf_eqx.metrics.lpips_available()`), with the DTU masks
-where a scene has them. Reported per run: the metrics, the median seconds per full frame over
-the views (ray generation on the host, rendering and the copy back, as `render_views` does
-it), the render compile time (the warm-up render minus that median), and the field (MLP)
-evaluations per frame, pixels x (coarse + fine) for the dense renderer (also with the last
-chunk's padding). With `--skipping` (the default) every model is also rendered by the
+ahead of time (`harness.TrainingRun`). Then every evaluation view (`--eval-views` evenly
+spaced test views, 0: all of the protocol's; `--eval-downscale` area-downsamples them, a proxy
+for cheap CPU runs) is rendered once by `render_frame`, after one warm-up render of the first
+view, and scored: PSNR, SSIM and LPIPS (where `mixnerf_eqx.metrics.lpips_available()`), with
+the DTU masks where a scene has them. Reported per run: the metrics, the median seconds per
+full frame over the views (ray generation on the host, rendering and the copy back, as
+`mx.render_views` does it), the render compile time (the warm-up render minus that median),
+and the field (MLP) evaluations per frame, pixels x (coarse + fine) for the dense renderer
+(also with the last chunk's padding). With `--skipping` (the default) every model is also rendered by the
 renderer that skips empty space and finished rays, with a grid built from the trained model
-and the config's `[occupancy]` settings (`--set occupancy.density_threshold=...` changes
-them), and its PSNR, seconds and evaluations per frame are reported beside the dense ones.
+and the config's `[occupancy]` settings (`mx.grid_for_rendering`: the threshold calibrated
+when `occupancy.calibrate` is on; `--set occupancy.density_threshold=...` changes them), and
+its PSNR, seconds and evaluations per frame are reported beside the dense ones.
 
 Outputs: `sample_count_<tag>.jsonl` in `--out` (default benchmarks/results; tag: the JAX
 backend), one line per finished run, appended as the study goes (so a stopped study keeps
 its finished runs); `sample_count_<tag>.json` with every run and the machine at the end; a
-printed table. Sample-count overrides come last: they win over `--set`.
+printed table. Both record the command that made them (`"command"`). Sample-count overrides
+come last: they win over `--set`.
 """
 
 import argparse
 import dataclasses
-import json
 import statistics
 import time
 from pathlib import Path
@@ -44,32 +45,28 @@ from typing import Any
 
 import jax
 import numpy as np
-from _runs import (
+from harness import (
     RESULTS,
     DatasetCache,
-    TrainingDiverged,
     TrainingRun,
+    append_jsonl,
     data_dir_override,
     expand_overrides,
+    grid_threshold,
     load,
     machine_info,
     model_summary,
     override_keys,
     platform_tag,
     print_table,
-    relative_paths,
     resolve,
     scene_spec,
     schedule_overrides,
-    typechecking,
     variant_spec,
     write_json,
 )
 
-from mixnerf_eqx._evaluate import image_metrics, render_views
-from mixnerf_eqx._model import MixNeRF
-from mixnerf_eqx._skipping import RenderStats, Skipping
-from mixnerf_eqx._train import make_skipping, occupancy_for_model
+import mixnerf_eqx as mx
 from mixnerf_eqx.data import Dataset, Views
 from mixnerf_eqx.metrics import lpips_available
 
@@ -88,26 +85,30 @@ class Frame:
 
 
 def render_frame(
-    model: MixNeRF, views: Views, dataset: Dataset, chunk: int, skipping: Skipping | None = None
+    model: mx.MixNeRF, views: Views, dataset: Dataset, chunk: int, skipping: mx.Skipping | None = None
 ) -> Frame:
     """Renders the single view in `views`: the one place where this benchmark renders.
 
     `chunk` is the rays per render call; `skipping` turns on the renderer that skips empty
-    space and finished rays. The counts come from the library's `RenderStats`: dense, every
+    space and finished rays. The counts come from the library's `RenderCounts`: dense, every
     ray evaluates the field at all its samples (pixels x (coarse + fine samples)); with
     skipping, only the evaluations made.
     """
     if views.num_views != 1:
         raise ValueError(f"render_frame renders one view, got {views.num_views}")
-    stats = RenderStats()
-    rgb, depth, acc = render_views(
-        model, views, dataset.near, dataset.far, chunk, skipping=skipping, stats=stats
+    rendered = mx.render_views(model, views, dataset.near, dataset.far, chunk, skipping=skipping)
+    counts = rendered.counts
+    return Frame(
+        rendered.rgb[0],
+        rendered.depth[0],
+        rendered.acc[0],
+        counts.field_evaluations,
+        counts.padded_evaluations,
     )
-    return Frame(rgb[0], depth[0], acc[0], stats.field_evaluations, stats.padded_evaluations)
 
 
 def benchmark_renders(
-    model: MixNeRF, dataset: Dataset, chunk: int, skipping: Skipping | None = None
+    model: mx.MixNeRF, dataset: Dataset, chunk: int, skipping: mx.Skipping | None = None
 ) -> dict[str, Any]:
     """Times `render_frame` on every test view after a warm-up, and scores the renders.
 
@@ -132,7 +133,7 @@ def benchmark_renders(
         per_view.append(
             {
                 "view": int(one.ids[0]),
-                **image_metrics(frame.rgb, one.images[0], mask=mask, with_lpips=with_lpips),
+                **mx.image_metrics(frame.rgb, one.images[0], mask=mask, with_lpips=with_lpips),
             }
         )
     median_s = statistics.median(seconds)
@@ -222,23 +223,22 @@ def run_one(args, scene, variant, samples: int, cache: DatasetCache) -> dict[str
                     f"[{scene.name} {variant.name} {samples}+{samples}] step {step}: {train_s:.1f} s",
                     flush=True,
                 )
-    except TrainingDiverged as error:
+    except mx.TrainingDiverged as error:
         status = f"diverged: {error}"
     chunk = args.chunk or config.train.render_chunk
-    with typechecking(config.train.typecheck):
-        renders = benchmark_renders(run.model, dataset, chunk)
-        if args.skipping:
-            started = time.perf_counter()
-            grid = occupancy_for_model(config, dataset, run.model, key=jax.random.key(args.steps))
-            grid_s = time.perf_counter() - started
-            skipped = benchmark_renders(run.model, dataset, chunk, make_skipping(config, grid))
-            record["skipping"] = {
-                "occupancy": dataclasses.asdict(config.occupancy),
-                "density_threshold": grid.threshold,
-                "occupied_fraction": float(grid.occupied_fraction()),
-                "grid_s": grid_s,
-                **{k: v for k, v in skipped.items() if k != "per_view"},
-            }
+    renders = benchmark_renders(run.model, dataset, chunk)
+    if args.skipping:
+        started = time.perf_counter()
+        grid, _ = mx.grid_for_rendering(config.occupancy, dataset, run.model, key=jax.random.key(args.steps))
+        grid_s = time.perf_counter() - started
+        skipped = benchmark_renders(run.model, dataset, chunk, mx.make_skipping(config.occupancy, grid))
+        record["skipping"] = {
+            "occupancy": dataclasses.asdict(config.occupancy),
+            "density_threshold": grid_threshold(grid),
+            "occupied_fraction": float(grid.occupied_fraction()),
+            "grid_s": grid_s,
+            **{k: v for k, v in skipped.items() if k != "per_view"},
+        }
     record.update(
         {
             "status": status,
@@ -288,8 +288,7 @@ def main() -> None:
         for samples in args.samples:
             for variant in args.variant:
                 rows.append(run_one(args, scene, variant, samples, cache))
-                with open(jsonl, "a") as handle:
-                    handle.write(json.dumps(relative_paths({"machine": machine, **rows[-1]})) + "\n")
+                append_jsonl(jsonl, {"machine": machine, **rows[-1]})
     header = (
         "scene",
         "model",

@@ -3,24 +3,25 @@
     python benchmarks/short_real_runs.py --data-dir ../shared/data            # lego 4-view, fern 3-view
     python benchmarks/short_real_runs.py --data-dir DIR --steps 2000 --size paper
 
-Each paper config (blender4.toml, llff3.toml and their mip-NeRF twins) is trained for
-`--steps` steps with everything else as the paper says, except, with `--size small`, a CPU-sized
-model (the built-in scene's: 4 x 64 MLP, 32 + 32 samples, 512 rays per step; the schedules are
-shortened to the run). The test views are then rendered and scored (PSNR, SSIM, LPIPS, average;
+Each paper config (blender4.toml, llff3.toml and their mip-NeRF twins) is trained with `mx.fit`
+for `--steps` steps with everything else as the paper says, except the schedules that would
+not fit the run (warm-up, lambda_C ramp, annealing: cut by `harness.schedule_overrides`) and,
+with `--size small`, a CPU-sized model (the built-in scene's: 4 x 64 MLP, 32 + 32 samples, 512
+rays per step). The test views are then rendered and scored (PSNR, SSIM, LPIPS, average;
 `--max-test-views` evenly spaced views of the protocol's test set). Prints a table with the
-load and training times and writes it as JSON. Existing run folders are resumed.
+load and training times and writes it as JSON
+(`benchmarks/results/short_real_runs_<backend>.json` unless `--out` says otherwise). Existing
+run folders are resumed.
 """
 
 import argparse
 import json
-import platform
 import time
 from pathlib import Path
 
-import jax
+import harness
 
-from mixnerf_eqx import load_config
-from mixnerf_eqx._train import fit
+import mixnerf_eqx as mx
 from mixnerf_eqx.data import load_dataset
 
 SCENES = {"lego": "blender4.toml", "fern": "llff3.toml"}
@@ -42,66 +43,71 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--size", choices=["small", "paper"], default="small")
     parser.add_argument("--max-test-views", type=int, default=8)
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES))
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--runs-root", default="runs/short_real")
-    parser.add_argument("--out", default="benchmarks/results/short_real_runs_cpu.json")
+    parser.add_argument(
+        "--out", default=None, help="JSON path (default: results/short_real_runs_<backend>.json)"
+    )
+    parser.add_argument("overrides", nargs="*", help="config overrides for every run, section.key=value")
     args = parser.parse_args()
     rows = []
     for scene in args.scenes:
         for model in ("mixnerf", "mipnerf"):
-            config_file = Path("configs") / (
-                SCENES[scene] if model == "mixnerf" else f"mipnerf_{SCENES[scene]}"
-            )
-            steps = args.steps
-            schedule = [
-                f"train.max_steps={steps}",
-                f"optim.warmup_steps={max(1, steps // 10)}",
-                f"loss.lambda_colour_steps={max(1, steps // 10)}",
-                f"train.anneal_steps={max(1, steps // 5)}",
+            name = SCENES[scene] if model == "mixnerf" else f"mipnerf_{SCENES[scene]}"
+            config_file = harness.REPO / "configs" / name
+            run_dir = Path(args.runs_root) / f"{model}_{scene}_{args.size}_{args.steps}"
+            overrides = [
+                *(SMALL if args.size == "small" else []),
+                *args.overrides,
                 "train.eval_every=0",
-                f"train.checkpoint_every={steps}",
+                f"train.checkpoint_every={args.steps}",
                 f"data.max_test_views={args.max_test_views}",
-                f'data.data_dir="{args.data_dir}"',
-                f'train.run_dir="{args.runs_root}/{model}_{scene}_{args.size}_{steps}"',
+                *harness.data_dir_override(args.data_dir),
+                f"train.run_dir={json.dumps(str(run_dir))}",
             ]
-            overrides = (SMALL if args.size == "small" else []) + schedule
-            config = load_config(config_file, overrides)
+            config = mx.load_config(config_file, overrides)
+            explicit = harness.override_keys(args.overrides)
+            config = mx.load_config(
+                config_file, [*overrides, *harness.schedule_overrides(config, args.steps, explicit)]
+            )
             started = time.perf_counter()
             dataset = load_dataset(config.data)
-            load_seconds = time.perf_counter() - started
+            load_s = time.perf_counter() - started
             started = time.perf_counter()
-            result = fit(config, dataset=dataset, progress=False, write_renders=True)
-            train_seconds = time.perf_counter() - started
-            means = result.metrics["test"]  # fit ends by scoring the test views
+            result = mx.fit(config, dataset=dataset, progress=False, write_renders=True)
             row = {
                 "scene": scene,
                 "model": model,
-                "config": str(config_file),
-                "steps": steps,
+                "config": f"configs/{name}",
+                "steps": args.steps,
                 "size": args.size,
                 "test_views": dataset.test.num_views,
-                "load_s": load_seconds,
-                "train_and_eval_s": train_seconds,
-                **means,
+                "load_s": load_s,
+                "train_and_eval_s": time.perf_counter() - started,
+                **result.metrics["test"],  # fit ends by scoring the test views
             }
             rows.append(row)
             print(json.dumps(row), flush=True)
-    header = ("scene", "model", "steps", "PSNR", "SSIM", "LPIPS", "average", "load s", "train+eval s")
-    print("\n| " + " | ".join(header) + " |\n|" + "---|" * len(header))
-    for row in rows:
-        cells = [row["scene"], row["model"], str(row["steps"])]
-        for name in ("psnr", "ssim", "lpips", "average"):
-            cells.append("n/a" if row[name] is None else f"{row[name]:.4f}")
-        cells += [f"{row['load_s']:.2f}", f"{row['train_and_eval_s']:.0f}"]
-        print("| " + " | ".join(cells) + " |")
-    machine = {
-        "platform": platform.platform(),
-        "jax": jax.__version__,
-        "devices": [str(d) for d in jax.devices()],
-    }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"machine": machine, "args": vars(args), "rows": rows}, indent=2))
-    print(f"written to {args.out}")
+    print()
+    harness.print_table(
+        ("scene", "model", "steps", "PSNR", "SSIM", "LPIPS", "average", "load s", "train+eval s"),
+        [
+            (
+                row["scene"],
+                row["model"],
+                row["steps"],
+                row["psnr"],
+                row["ssim"],
+                row["lpips"],
+                row["average"],
+                row["load_s"],
+                row["train_and_eval_s"],
+            )
+            for row in rows
+        ],
+    )
+    out = Path(args.out) if args.out else harness.RESULTS / f"short_real_runs_{harness.platform_tag()}.json"
+    harness.write_json(out, {"args": vars(args), "rows": rows})
 
 
 if __name__ == "__main__":

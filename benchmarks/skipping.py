@@ -11,34 +11,31 @@ printed beside it.
 
     python benchmarks/skipping.py RUN_DIR [--data-dir ../shared/data] [--max-views 4]
 
-The occupancy grid is rebuilt from the checkpoint (every cell evaluated once), its cost is
-reported as `grid_seconds`. The `--thresholds` rows use each threshold as given; the
-`--calibrate` rows (one per tolerance) let `mixnerf_eqx.calibrate_threshold` choose it on
-`--calibrate-rays` training pixels, starting from the smallest of `--thresholds`, as
-`fit` and `python -m mixnerf_eqx.eval` do with `occupancy.calibrate` on; their
-`grid_seconds` include the calibration. Each setting renders the selected views twice and times the
-second pass, so that compiling the buffer sizes a setting needs is not timed.
+The run is read with `mx.restore_run`, and the occupancy grid rebuilt from the checkpoint by
+`mx.grid_for_rendering` (every cell evaluated once); its cost is reported as `grid_seconds`.
+The `--thresholds` rows use each threshold as given; the `--calibrate` rows (one per
+tolerance) let `mixnerf_eqx.calibrate_threshold` choose it on `--calibrate-rays` training
+pixels, starting from the smallest of `--thresholds`, as `fit` and `python -m mixnerf_eqx.eval`
+do with `occupancy.calibrate` on; their `grid_seconds` include the calibration. Each setting
+renders the selected views twice and times the second pass, so that compiling the buffer sizes
+a setting needs is not timed.
+
+Output: `--out`, default `benchmarks/results/skipping_<backend>_<scene>.json`, with the command
+that made it (`"command"`) and the machine.
 """
 
 import argparse
 import dataclasses
-import json
-import platform
-import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
+from harness import RESULTS, grid_threshold, platform_tag, write_json
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from mixnerf_eqx._evaluate import render_views  # noqa: E402
-from mixnerf_eqx._skipping import RenderStats, Skipping  # noqa: E402
-from mixnerf_eqx._train import make_occupancy_grid, occupancy_for_model  # noqa: E402
-from mixnerf_eqx.data._splits import evenly_spaced  # noqa: E402
-from mixnerf_eqx.eval import load_run  # noqa: E402
-from mixnerf_eqx.metrics import psnr  # noqa: E402
+import mixnerf_eqx as mx
+from mixnerf_eqx.data import evenly_spaced
+from mixnerf_eqx.metrics import psnr
 
 
 def parse_args(argv=None):
@@ -62,32 +59,35 @@ def parse_args(argv=None):
         help="also calibrate the threshold to these PSNR-drop bounds (none: skip)",
     )
     parser.add_argument("--calibrate-rays", type=int, default=4096, help="training pixels for calibrating")
-    parser.add_argument("--out", type=Path, default=None, help="result JSON (default: results/skipping_*)")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="result JSON (default: benchmarks/results/skipping_*)"
+    )
     return parser.parse_args(argv)
 
 
 def _render(model, views, dataset, chunk, skipping):
     """Renders every view once; returns the images, seconds per frame and the counts."""
-    stats = RenderStats()
+    counts = mx.RenderCounts()
     rgb = np.empty((views.num_views, views.height, views.width, 3), np.float32)
     seconds = []
     for index in range(views.num_views):
         started = time.perf_counter()
-        out = render_views(
-            model, views.select([index]), dataset.near, dataset.far, chunk, skipping=skipping, stats=stats
+        out = mx.render_views(
+            model, views.select([index]), dataset.near, dataset.far, chunk, skipping=skipping
         )
         seconds.append(time.perf_counter() - started)
-        rgb[index] = out[0][0]
-    return rgb, float(np.median(seconds)), stats
+        rgb[index] = out.rgb[0]
+        counts = counts + out.counts
+    return rgb, float(np.median(seconds)), counts
 
 
 def main(argv=None):
     args = parse_args(argv)
-    config, dataset, model, step, _, key = load_run(args.run_dir, data_dir=args.data_dir)
-    occupancy = dataclasses.replace(config.occupancy, resolution=args.resolution)
+    run = mx.restore_run(args.run_dir, data_dir=args.data_dir)
+    dataset, model, step, key = run.dataset, run.model, run.step, run.state.key
+    occupancy = dataclasses.replace(run.config.occupancy, resolution=args.resolution)
     if args.box_radius is not None:
         occupancy = dataclasses.replace(occupancy, box_radius=args.box_radius)
-    config = dataclasses.replace(config, occupancy=occupancy)
     ids = evenly_spaced(dataset.test.num_views, min(args.max_views, dataset.test.num_views))
     views = dataset.test.select(ids)
     pixels = views.height * views.width
@@ -95,12 +95,12 @@ def main(argv=None):
     def score(rgb):
         return float(np.mean([psnr(rgb[i], views.images[i]) for i in range(views.num_views)]))
 
-    render_views(model, views.select([0]), dataset.near, dataset.far, args.chunk)  # compile
-    dense_rgb, dense_seconds, dense_stats = _render(model, views, dataset, args.chunk, None)
+    mx.render_views(model, views.select([0]), dataset.near, dataset.far, args.chunk)  # compile
+    dense_rgb, dense_seconds, dense_counts = _render(model, views, dataset, args.chunk, None)
     dense_psnr = score(dense_rgb)
     print(f"{dataset.name}, step {step}, {views.num_views} views of {views.height}x{views.width}")
     print(
-        f"dense: {dense_stats.dense_evaluations / views.num_views:.0f} evaluations/frame, "
+        f"dense: {dense_counts.dense_evaluations / views.num_views:.0f} evaluations/frame, "
         f"{dense_seconds:.3f} s/frame, PSNR {dense_psnr:.3f}"
     )
 
@@ -110,38 +110,36 @@ def main(argv=None):
     grids += [(min(args.thresholds), tolerance) for tolerance in args.calibrate]
     for threshold, tolerance in grids:
         for dilation in args.dilations:
-            grid_config = dataclasses.replace(
-                config,
-                occupancy=dataclasses.replace(
-                    config.occupancy,
-                    density_threshold=threshold,
-                    dilation=dilation,
-                    calibrate=tolerance is not None,
-                    calibrate_tolerance_db=0.0 if tolerance is None else tolerance,
-                    calibrate_rays=args.calibrate_rays,
-                    stop_transmittance=min(args.stops),
-                ),
+            grid_occupancy = dataclasses.replace(
+                occupancy,
+                density_threshold=threshold,
+                dilation=dilation,
+                calibrate=tolerance is not None,
+                calibrate_tolerance_db=0.0 if tolerance is None else tolerance,
+                calibrate_rays=args.calibrate_rays,
+                stop_transmittance=min(args.stops),
             )
             started = time.perf_counter()
-            grid = occupancy_for_model(grid_config, dataset, model, key=jax.random.fold_in(key, step))
+            grid, _ = mx.grid_for_rendering(grid_occupancy, dataset, model, key=jax.random.fold_in(key, step))
             grid.density.block_until_ready()
             grid_seconds = time.perf_counter() - started
+            threshold_used = grid_threshold(grid)
             for stop in args.stops:
-                skipping = Skipping(grid=grid, stop_transmittance=stop, segments=args.segments)
-                render_views(
+                skipping = mx.Skipping(grid=grid, stop_transmittance=stop, segments=args.segments)
+                mx.render_views(
                     model, views.select([0]), dataset.near, dataset.far, args.chunk, skipping=skipping
                 )
-                rgb, seconds, stats = _render(model, views, dataset, args.chunk, skipping)
+                rgb, seconds, counts = _render(model, views, dataset, args.chunk, skipping)
                 value = score(rgb)
                 row = {
-                    "threshold": grid.threshold,
+                    "threshold": threshold_used,
                     "calibrated_to_db": tolerance,
                     "dilation": dilation,
                     "stop_transmittance": stop,
                     "occupied_fraction": float(grid.occupied_fraction()),
-                    "evaluations_per_frame": stats.padded_evaluations / views.num_views,
-                    "needed_per_frame": stats.field_evaluations / views.num_views,
-                    "reduction": stats.reduction,
+                    "evaluations_per_frame": counts.padded_evaluations / views.num_views,
+                    "needed_per_frame": counts.field_evaluations / views.num_views,
+                    "reduction": counts.reduction,
                     "seconds_per_frame": seconds,
                     "speedup": dense_seconds / seconds,
                     "psnr": value,
@@ -151,7 +149,7 @@ def main(argv=None):
                 rows.append(row)
                 how = "" if tolerance is None else f" (calibrated to {tolerance:g} dB)"
                 print(
-                    f"threshold {grid.threshold:<6g}{how} dilation {dilation} stop {stop:<6g} "
+                    f"threshold {threshold_used:<6g}{how} dilation {dilation} stop {stop:<6g} "
                     f"occupied {row['occupied_fraction']:6.1%}  "
                     f"evals/frame {row['evaluations_per_frame']:>10.0f} "
                     f"({row['reduction']:5.2f}x fewer)  {seconds:7.3f} s/frame ({row['speedup']:4.2f}x)  "
@@ -184,7 +182,7 @@ def main(argv=None):
             f"(PSNR {best_same['psnr_change']:+.3f} dB)"
         )
     print(verdict)
-    empty = make_occupancy_grid(config, dataset)
+    empty = mx.make_occupancy_grid(occupancy, dataset)
     result = {
         "run_dir": str(args.run_dir),
         "scene": dataset.name,
@@ -198,7 +196,7 @@ def main(argv=None):
             "outside_occupied": empty.outside_occupied,
         },
         "dense": {
-            "evaluations_per_frame": dense_stats.dense_evaluations / views.num_views,
+            "evaluations_per_frame": dense_counts.dense_evaluations / views.num_views,
             "seconds_per_frame": dense_seconds,
             "psnr": dense_psnr,
         },
@@ -206,20 +204,8 @@ def main(argv=None):
         "best_within_0.1dB": best,
         "best_within_plus_minus_0.1dB": best_same,
         "verdict": verdict,
-        "machine": {
-            "backend": jax.default_backend(),
-            "device": str(jax.devices()[0].device_kind),
-            "processor": platform.processor() or platform.machine(),
-            "jax": jax.__version__,
-        },
     }
-    out = (
-        args.out
-        or Path(__file__).parent / "results" / f"skipping_{jax.default_backend()}_{dataset.name}.json"
-    )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
-    print(f"written: {out}")
+    write_json(args.out or RESULTS / f"skipping_{platform_tag()}_{dataset.name}.json", result)
 
 
 if __name__ == "__main__":

@@ -1,43 +1,37 @@
 """MixNeRF (CVPR 2023) on JAX and Equinox: few-shot novel view synthesis with mixture densities.
 
-Runtime shape checking: unless the environment sets `MIXNERF_EQX_TYPECHECK=0`, the package's
-modules are imported through `jaxtyping.install_import_hook(..., "beartype.beartype")`, so every
-annotated function and Module checks the shapes and dtypes of its arguments. The checks run in
-Python, that is while JAX traces a jitted function: a compiled step pays nothing for them.
+Importing the package installs jaxtyping's import hook with beartype for its modules, so every
+annotated function and Module checks the shapes and dtypes of its arguments while JAX traces
+(a compiled step pays nothing). `mixnerf_eqx.set_typecheck(False)`, `--no-typecheck` or
+`JAXTYPING_DISABLE=1` turn the checks off: see `mixnerf_eqx._typecheck`.
 """
-
-import contextlib as _contextlib
-import os as _os
 
 import jaxtyping as _jaxtyping
 
-TYPECHECK_ON_IMPORT = _os.environ.get("MIXNERF_EQX_TYPECHECK", "1") != "0"
-
-with (
-    _jaxtyping.install_import_hook(__name__, "beartype.beartype")
-    if TYPECHECK_ON_IMPORT
-    else _contextlib.nullcontext()
-):
-    # Imported here, under the hook, so that their annotations are checked too: a module
-    # first imported after this block would not be.
-    from . import _calibrate as _calibrate
-    from . import _checkpoint as _checkpoint
-    from . import _evaluate as _evaluate
-    from . import _schedule as _schedule
-    from . import _train as _train
+with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from . import data as data
     from . import metrics as metrics
     from ._calibrate import ThresholdChoice as ThresholdChoice
     from ._calibrate import calibrate_threshold as calibrate_threshold
     from ._calibrate import calibration_rays as calibration_rays
+    from ._calibrate import psnr_drop_bound as psnr_drop_bound
+    from ._checkpoint import CheckpointError as CheckpointError
+    from ._checkpoint import latest_checkpoint as latest_checkpoint
+    from ._checkpoint import load_checkpoint as load_checkpoint
+    from ._checkpoint import read_checkpoint_meta as read_checkpoint_meta
+    from ._checkpoint import save_checkpoint as save_checkpoint
     from ._config import Config as Config
     from ._config import ConfigError as ConfigError
-    from ._config import build_model as build_model
+    from ._config import config_from_dict as config_from_dict
     from ._config import load_config as load_config
+    from ._encoding import conical_frustum_moments as conical_frustum_moments
     from ._encoding import frustum_gaussians as frustum_gaussians
     from ._encoding import integrated_positional_encoding as integrated_positional_encoding
     from ._encoding import positional_encoding as positional_encoding
+    from ._evaluate import Evaluation as Evaluation
+    from ._evaluate import Rendered as Rendered
     from ._evaluate import evaluate as evaluate
+    from ._evaluate import image_metrics as image_metrics
     from ._evaluate import render_rays as render_rays
     from ._evaluate import render_views as render_views
     from ._field import AbstractField as AbstractField
@@ -46,11 +40,13 @@ with (
     from ._loss import LossTerms as LossTerms
     from ._loss import LossWeights as LossWeights
     from ._loss import loss_fn as loss_fn
+    from ._loss import loss_terms as loss_terms
     from ._mixture import AbstractMixture as AbstractMixture
     from ._mixture import LaplaceMixture as LaplaceMixture
     from ._mixture.laplace import laplace_log_density as laplace_log_density
     from ._model import MixNeRF as MixNeRF
     from ._model import RenderOutputs as RenderOutputs
+    from ._model import build_model as build_model
     from ._occupancy import OccupancyGrid as OccupancyGrid
     from ._occupancy import empty_grid as empty_grid
     from ._occupancy import refresh_occupancy as refresh_occupancy
@@ -65,13 +61,37 @@ with (
     from ._renderer import AbstractRenderer as AbstractRenderer
     from ._renderer import LevelOutputs as LevelOutputs
     from ._renderer import VolumeRenderer as VolumeRenderer
+    from ._run import Run as Run
+    from ._run import grid_for_rendering as grid_for_rendering
+    from ._run import make_skipping as make_skipping
+    from ._run import render_summary as render_summary
+    from ._run import restore_run as restore_run
+    from ._run import write_view_renders as write_view_renders
     from ._sampler import AbstractSampler as AbstractSampler
     from ._sampler import HierarchicalSampler as HierarchicalSampler
     from ._sampler import StratifiedSampler as StratifiedSampler
-    from ._skipping import RenderStats as RenderStats
+    from ._sampler import blur_weights as blur_weights
+    from ._sampler import sample_piecewise_constant as sample_piecewise_constant
+    from ._schedule import anneal_sample_space as anneal_sample_space
+    from ._schedule import learning_rate_schedule as learning_rate_schedule
+    from ._schedule import linear_ramp as linear_ramp
+    from ._skipping import RenderCounts as RenderCounts
     from ._skipping import Skipping as Skipping
+    from ._skipping import render_skipping as render_skipping
     from ._train import TrainingDiverged as TrainingDiverged
     from ._train import TrainResult as TrainResult
     from ._train import fit as fit
-    from ._train import make_skipping as make_skipping
-    from ._train import occupancy_for_model as occupancy_for_model
+    from ._train_state import Batch as Batch
+    from ._train_state import StepMetrics as StepMetrics
+    from ._train_state import TrainingRays as TrainingRays
+    from ._train_state import TrainState as TrainState
+    from ._train_state import draw_batch as draw_batch
+    from ._train_state import init_key as init_key
+    from ._train_state import init_train_state as init_train_state
+    from ._train_state import make_occupancy_grid as make_occupancy_grid
+    from ._train_state import make_optimizer as make_optimizer
+    from ._train_state import make_train_step as make_train_step
+    from ._train_state import training_rays as training_rays
+    from ._train_state import update_grid as update_grid
+    from ._typecheck import set_typecheck as set_typecheck
+    from ._typecheck import typecheck_enabled as typecheck_enabled

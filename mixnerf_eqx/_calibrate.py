@@ -18,7 +18,6 @@ an estimate.
 import dataclasses
 import math
 
-import equinox as eqx
 import jax
 import numpy as np
 from jaxtyping import Array, Float
@@ -28,7 +27,7 @@ from ._evaluate import render_rays
 from ._model import MixNeRF
 from ._occupancy import OccupancyGrid
 from ._rays import RayBundle
-from ._skipping import RenderStats, Skipping
+from ._skipping import Skipping
 from .data import Dataset, rays_for_views
 
 
@@ -96,21 +95,12 @@ def calibration_rays(dataset: Dataset, num_rays: int, *, key: PRNGKey) -> tuple[
     return rays, colours
 
 
-def _with_threshold(grid: OccupancyGrid, threshold: float) -> OccupancyGrid:
-    """`grid` marking cells above `threshold`, with the same static threshold as `grid`.
-
-    `density > threshold` is `density * (t0 / threshold) > t0`: rescaling the densities
-    instead of changing the static threshold keeps the compiled renderer.
-    """
-    return eqx.tree_at(lambda g: g.density, grid, grid.density * (grid.threshold / threshold))
-
-
 def calibrate_threshold(
     model: MixNeRF,
     grid: OccupancyGrid,
     skipping: Skipping,
     rays: RayBundle,
-    target: np.ndarray | Float[Array, "rays 3"],
+    target: np.ndarray | Float[Array, "batch channels"],
     *,
     tolerance_db: float = 0.1,
     doublings: int = 14,
@@ -122,6 +112,8 @@ def calibrate_threshold(
 
     - `model`: the trained model.
     - `grid`: its evaluated occupancy grid; `grid.threshold` (> 0) is the smallest candidate.
+      Only the threshold changes between candidates (an array leaf), so every candidate
+      reuses the compiled render.
     - `skipping`: the other rendering options (early termination); its grid is replaced.
     - `rays`, `target`: the calibration rays and their colours (`calibration_rays`).
     - `tolerance_db`: the largest bound on the PSNR lost that is accepted.
@@ -137,39 +129,35 @@ def calibrate_threshold(
 
     `(grid with the chosen threshold, ThresholdChoice)`.
     """
-    if grid.threshold <= 0:
-        raise ValueError(
-            f"the grid's threshold is the smallest candidate and must be > 0, got {grid.threshold}"
-        )
+    smallest = float(grid.threshold)
+    if smallest <= 0:
+        raise ValueError(f"the grid's threshold is the smallest candidate and must be > 0, got {smallest}")
     if tolerance_db < 0 or doublings < 0:
         raise ValueError("tolerance_db and doublings must be >= 0")
     target = np.asarray(target, np.float32).reshape(-1, 3)
-    dense, _, _ = render_rays(model, rays, chunk)
-    dense = dense.reshape(-1, 3)
+    dense = render_rays(model, rays, chunk).rgb.reshape(-1, 3)
     trials: list[ThresholdTrial] = []
 
-    def trial(threshold: float, candidate: OccupancyGrid) -> ThresholdTrial:
-        stats = RenderStats()
-        rgb, _, _ = render_rays(
-            model, rays, chunk, skipping=dataclasses.replace(skipping, grid=candidate), stats=stats
-        )
+    def trial(threshold: float) -> ThresholdTrial:
+        candidate = dataclasses.replace(skipping, grid=grid.with_threshold(threshold))
+        rendered = render_rays(model, rays, chunk, skipping=candidate)
         result = ThresholdTrial(
-            threshold, psnr_drop_bound(dense, rgb.reshape(-1, 3), target), stats.reduction
+            threshold, psnr_drop_bound(dense, rendered.rgb.reshape(-1, 3), target), rendered.counts.reduction
         )
         trials.append(result)
         return result
 
-    candidates = [grid.threshold * 2.0**k for k in range(doublings + 1)]
+    candidates = [smallest * 2.0**k for k in range(doublings + 1)]
     low, high, best = 0, len(candidates) - 1, None
     while low <= high:
         middle = (low + high) // 2
-        result = trial(candidates[middle], _with_threshold(grid, candidates[middle]))
+        result = trial(candidates[middle])
         if result.bound_db <= tolerance_db:
             best, low = result, middle + 1
         else:
             high = middle - 1
     if best is None:
-        best = trial(0.0, dataclasses.replace(grid, threshold=0.0))
+        best = trial(0.0)
     choice = ThresholdChoice(
         threshold=best.threshold,
         bound_db=best.bound_db,
@@ -178,4 +166,4 @@ def calibrate_threshold(
         tolerance_db=tolerance_db,
         trials=tuple(trials),
     )
-    return dataclasses.replace(grid, threshold=best.threshold), choice
+    return grid.with_threshold(best.threshold), choice

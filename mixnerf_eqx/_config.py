@@ -1,22 +1,18 @@
-"""Typed, frozen configuration loaded from `configs/*.toml`, and `build_model`."""
+"""The configuration schema: typed, frozen dataclasses loaded from `configs/*.toml`.
+
+This module is the bottom layer: it imports nothing of the model, so that loading a scene
+(`data/`) or reading a run's settings does not build or import one. What each section means
+for the model is decided where the model is built (`mixnerf_eqx._model.build_model`).
+"""
 
 import dataclasses
 import tomllib
 import types
 import typing
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
-
-import jax
-
-from ._custom_types import PRNGKey
-from ._field import MipNeRFField
-from ._loss import LossWeights
-from ._mixture import LaplaceMixture
-from ._model import MixNeRF
-from ._renderer import VolumeRenderer
-from ._sampler import HierarchicalSampler, StratifiedSampler
 
 
 class ConfigError(ValueError):
@@ -63,7 +59,7 @@ class ModelConfig:
 @dataclasses.dataclass(frozen=True)
 class LossConfig:
     coarse_mse_weight: float = 0.1  # MSE = MSE_fine + this * MSE_coarse
-    lambda_colour_start: float = 4.0  # lambda_C at step 0
+    lambda_colour_start: float = 4.0  # lambda_C at step 1
     lambda_colour_end: float = 1e-3  # lambda_C from `lambda_colour_steps` on
     lambda_colour_steps: int = 512  # length of lambda_C's linear ramp
     lambda_depth: float = 1e-3  # lambda_D (Blender 4-view)
@@ -74,31 +70,15 @@ class LossConfig:
     depth_scale: Literal["colour", "single"] = "colour"  # depth reuses the 3 colour scales
     nll_evaluation: Literal["log", "linear"] = "log"  # stable log space, or released arithmetic
 
-    @property
-    def is_baseline(self) -> bool:
-        """True when every NLL weight is zero: the mip-NeRF baseline."""
-        return (
-            self.lambda_colour_start == 0
-            and self.lambda_colour_end == 0
-            and self.lambda_depth == 0
-            and self.lambda_regen == 0
-        )
-
-    def weights(self) -> LossWeights:
-        return LossWeights(
-            coarse_mse=self.coarse_mse_weight,
-            colour_nll=self.lambda_colour_start != 0 or self.lambda_colour_end != 0,
-            depth_nll=self.lambda_depth,
-            regen_nll=self.lambda_regen,
-            nll_levels=self.nll_levels,
-        )
-
 
 @dataclasses.dataclass(frozen=True)
 class OptimConfig:
     lr_init: float = 1e-3  # initial learning rate (Blender: 1e-3, LLFF/DTU: 2e-3)
     lr_final: float = 1e-5  # final learning rate of the log-linear decay
     warmup_steps: int = 512  # length of the sine warm-up
+    decay_steps: int = (
+        0  # steps of the log-linear decay (0: train.max_steps; a continued run keeps its first)
+    )
     grad_max_value: float = 0.1  # element-wise gradient clip (0 turns it off)
     grad_max_norm: float = 0.1  # global-norm gradient clip (0 turns it off)
 
@@ -116,7 +96,6 @@ class TrainConfig:
     checkpoint_every: int = 1000  # write a checkpoint every this many steps (and at the end)
     render_chunk: int = 4096  # rays rendered at once when rendering images
     run_dir: str = "runs/builtin"  # where checkpoints, metrics and renders go
-    typecheck: bool = True  # runtime jaxtyping/beartype checks (trace time only)
     max_nonfinite_steps: int = 20  # stop after this many consecutive skipped (non-finite) steps
 
 
@@ -151,6 +130,7 @@ class OccupancyConfig:
 class Config:
     name: str = "mixnerf"  # a name for the run
     reproduces: str = ""  # the paper cell this config reproduces, if any
+    method: Literal["mixnerf", "mipnerf"] = "mixnerf"  # MixNeRF, or its mip-NeRF baseline (no mixture)
     data: DataConfig = DataConfig()
     model: ModelConfig = ModelConfig()
     loss: LossConfig = LossConfig()
@@ -162,55 +142,135 @@ class Config:
         validate(self)
 
 
-def validate(config: Config) -> None:
-    """Raises `ConfigError` for values no run can use."""
+def _at_least(low: int | float) -> tuple[Any, str]:
+    return (lambda value: value >= low), f"must be >= {low:g}"
+
+
+def _within(
+    low: int | float, high: int | float, *, low_open: bool = False, high_open: bool = False
+) -> tuple[Any, str]:
+    def check(value):
+        return (low < value if low_open else low <= value) and (value < high if high_open else value <= high)
+
+    return check, f"must lie in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+
+
+_POSITIVE = ((lambda value: value > 0), "must be positive")
+_INT32_MAX = 2**31 - 1
+
+# Range of every numeric setting: (section.key, check, what the check asks).
+_RANGES: tuple[tuple[str, Any, str], ...] = (
+    *(
+        (key, *_POSITIVE)
+        for key in (
+            "data.resolution",
+            "data.num_train_views",
+            "data.num_test_views",
+            "data.image_downscale",
+            "model.width",
+            "model.depth",
+            "model.view_width",
+            "model.num_coarse_samples",
+            "model.num_fine_samples",
+            "optim.lr_init",
+            "optim.lr_final",
+            "train.max_steps",
+            "train.batch_size",
+            "train.render_chunk",
+            "train.max_nonfinite_steps",
+            "occupancy.calibrate_rays",
+            "occupancy.update_every",
+            "occupancy.segments",
+            "occupancy.chunk",
+        )
+    ),
+    *(
+        (key, *_at_least(0))
+        for key in (
+            "data.max_test_views",
+            "data.near",
+            "data.far",
+            "model.skip_layer",
+            "model.min_deg",
+            "model.viewdir_max_deg",
+            "model.density_noise",
+            "model.rgb_padding",
+            "model.resample_padding",
+            "loss.coarse_mse_weight",
+            "loss.lambda_colour_start",
+            "loss.lambda_colour_end",
+            "loss.lambda_colour_steps",
+            "loss.lambda_depth",
+            "loss.lambda_regen",
+            "loss.weight_eps",
+            "loss.likelihood_floor",
+            "optim.warmup_steps",
+            "optim.decay_steps",
+            "optim.grad_max_value",
+            "optim.grad_max_norm",
+            "train.anneal_steps",
+            "train.eval_every",
+            "train.num_eval_views",
+            "train.checkpoint_every",
+            "occupancy.box_radius",
+            "occupancy.density_threshold",
+            "occupancy.calibrate_tolerance_db",
+            "occupancy.calibrate_doublings",
+            "occupancy.dilation",
+        )
+    ),
+    ("model.max_deg", *_at_least(1)),
+    ("train.max_steps", lambda value: value <= _INT32_MAX, f"must be at most {_INT32_MAX} (int32 steps)"),
+    ("train.anneal_start", *_within(0, 1, low_open=True)),
+    ("train.anneal_mid", *_within(0, 1)),
+    ("occupancy.resolution", *_at_least(2)),
+    ("occupancy.decay", *_within(0, 1)),
+    ("occupancy.update_fraction", *_within(0, 1, low_open=True)),
+    ("occupancy.stop_transmittance", *_within(0, 1, high_open=True)),
+)
+
+
+def _setting(config: "Config", key: str) -> Any:
+    section, name = key.split(".")
+    return getattr(getattr(config, section), name)
+
+
+def _consistency_problems(config: "Config") -> list[str]:
+    """Settings that are each in range but cannot be used together."""
     problems = []
-    positive = {
-        "model.width": config.model.width,
-        "model.depth": config.model.depth,
-        "model.view_width": config.model.view_width,
-        "model.num_coarse_samples": config.model.num_coarse_samples,
-        "model.num_fine_samples": config.model.num_fine_samples,
-        "train.max_steps": config.train.max_steps,
-        "train.batch_size": config.train.batch_size,
-        "train.render_chunk": config.train.render_chunk,
-        "data.resolution": config.data.resolution,
-        "data.num_train_views": config.data.num_train_views,
-        "optim.lr_init": config.optim.lr_init,
-        "optim.lr_final": config.optim.lr_final,
-    }
-    problems += [f"{name} must be positive, got {value}" for name, value in positive.items() if value <= 0]
-    if config.loss.likelihood_floor < 0:
-        problems.append("loss.likelihood_floor must be >= 0")
-    if not 0 < config.train.anneal_start <= 1:
-        problems.append("train.anneal_start must lie in (0, 1]")
-    occupancy = config.occupancy
-    if occupancy.resolution < 2:
-        problems.append(f"occupancy.resolution must be at least 2, got {occupancy.resolution}")
-    if occupancy.box_radius < 0:
-        problems.append("occupancy.box_radius must be >= 0")
-    if occupancy.density_threshold < 0:
-        problems.append("occupancy.density_threshold must be >= 0")
-    if occupancy.dilation < 0:
-        problems.append("occupancy.dilation must be >= 0")
+    model, data, loss, occupancy = config.model, config.data, config.loss, config.occupancy
+    nll_weights = (loss.lambda_colour_start, loss.lambda_colour_end, loss.lambda_depth, loss.lambda_regen)
+    if config.method == "mixnerf" and not any(nll_weights):
+        problems.append(
+            'every mixture loss weight is zero: for the mip-NeRF baseline set method = "mipnerf" '
+            "(the method is no longer inferred from the lambdas)"
+        )
+    if model.skip_layer >= model.depth:
+        problems.append(
+            f"model.skip_layer must be below model.depth ({model.depth}), got {model.skip_layer} "
+            "(0: no skip connection)"
+        )
+    if model.min_deg >= model.max_deg:
+        problems.append(f"model.min_deg ({model.min_deg}) must be below model.max_deg ({model.max_deg})")
+    if data.far > 0 and data.near >= data.far:
+        problems.append(f"data.near ({data.near:g}) must be below data.far ({data.far:g})")
+    if not config.train.run_dir.strip():
+        problems.append("train.run_dir must name a folder (it is empty)")
     if occupancy.calibrate and occupancy.density_threshold <= 0:
         problems.append(
             "occupancy.calibrate needs occupancy.density_threshold > 0 (the first threshold tried)"
         )
-    if occupancy.calibrate_tolerance_db < 0 or occupancy.calibrate_doublings < 0:
-        problems.append("occupancy.calibrate_tolerance_db and occupancy.calibrate_doublings must be >= 0")
-    if occupancy.calibrate_rays < 1:
-        problems.append("occupancy.calibrate_rays must be positive")
-    if not 0 <= occupancy.decay <= 1:
-        problems.append("occupancy.decay must lie in [0, 1]")
-    if occupancy.update_every < 1:
-        problems.append("occupancy.update_every must be positive")
-    if not 0 < occupancy.update_fraction <= 1:
-        problems.append("occupancy.update_fraction must lie in (0, 1]")
-    if not 0 <= occupancy.stop_transmittance < 1:
-        problems.append("occupancy.stop_transmittance must lie in [0, 1)")
-    if occupancy.segments < 1 or occupancy.chunk < 1:
-        problems.append("occupancy.segments and occupancy.chunk must be positive")
+    return problems
+
+
+def validate(config: "Config") -> None:
+    """Raises `ConfigError` naming every setting whose value no run can use."""
+    problems = [
+        f"{key} {wanted}, got {_setting(config, key)!r}"
+        for key, check, wanted in _RANGES
+        if not check(_setting(config, key))
+    ]
+    problems += _consistency_problems(config)
     if problems:
         raise ConfigError("; ".join(problems))
 
@@ -258,11 +318,26 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
     raise ConfigError(f"{where}: unsupported annotation {annotation}")
 
 
+# Keys that older versions wrote (run folders keep them in `config.json`): read, ignored, and
+# named in a warning that says what replaced them.
+_REMOVED_KEYS = {
+    ("train", "typecheck"): "shape checks are switched by --no-typecheck (or JAXTYPING_DISABLE=1)",
+}
+
+
 def _apply(base: Any, values: dict[str, Any], where: str) -> Any:
     hints = typing.get_type_hints(type(base))
     names = {f.name for f in dataclasses.fields(base)}
+    section = next(name for name, cls in _SECTIONS.items() if isinstance(base, cls))
     updates = {}
     for key, value in values.items():
+        if (section, key) in _REMOVED_KEYS:
+            warnings.warn(
+                f"{where}: {key} is no longer a setting and is ignored; {_REMOVED_KEYS[section, key]}",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            continue
         if key not in names:
             raise ConfigError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(names))})")
         updates[key] = _coerce(value, hints[key], f"{where}: {key}")
@@ -282,11 +357,11 @@ def config_from_dict(values: dict[str, Any], source: str = "<dict>", base: Confi
             if not isinstance(value, dict):
                 raise ConfigError(f"{source}: [{key}] must be a table")
             section_updates[key] = _apply(getattr(base, key), value, f"{source} [{key}]")
-        elif key in ("name", "reproduces"):
-            top_updates[key] = _coerce(value, str, f"{source}: {key}")
+        elif key in ("name", "reproduces", "method"):
+            top_updates[key] = _coerce(value, typing.get_type_hints(Config)[key], f"{source}: {key}")
         else:
             raise ConfigError(
-                f"{source}: unknown key {key!r} (known: name, reproduces, {', '.join(_SECTIONS)})"
+                f"{source}: unknown key {key!r} (known: name, reproduces, method, {', '.join(_SECTIONS)})"
             )
     try:
         return dataclasses.replace(base, **top_updates, **section_updates)
@@ -319,6 +394,9 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
     A file may start from another with `extends = "other.toml"` (relative to the file).
     """
     config = Config() if path is None else _load_file(Path(path), ())
+    # All overrides are applied at once, so that settings that must change together (the
+    # method and its loss weights) can be given as separate overrides.
+    merged: dict[str, Any] = {}
     for override in overrides:
         key, sep, raw = override.partition("=")
         if not sep or not key:
@@ -327,73 +405,24 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
             value = tomllib.loads(f"v = {raw}")["v"]
         except tomllib.TOMLDecodeError:
             value = raw
-        nested: dict[str, Any] = {}
         parts = key.strip().split(".")
-        cursor = nested
+        cursor = merged
         for part in parts[:-1]:
             cursor = cursor.setdefault(part, {})
+            if not isinstance(cursor, dict):
+                raise ConfigError(f"override {override!r}: {part} is not a section")
         cursor[parts[-1]] = value
-        config = config_from_dict(nested, f"override {override!r}", config)
-    return config
+    if not merged:
+        return config
+    listed = ", ".join(repr(o) for o in overrides)
+    return config_from_dict(merged, f"override{'s' if len(overrides) > 1 else ''} {listed}", config)
+
+
+def replace_setting(config: Config, section: str, **values: Any) -> Config:
+    """`config` with `values` set in `section` (checked like a file's values)."""
+    return config_from_dict({section: values}, f"[{section}] {', '.join(values)}", config)
 
 
 def config_to_dict(config: Config) -> dict[str, Any]:
     """The config as plain nested dictionaries (for JSON and checkpoints)."""
     return dataclasses.asdict(config)
-
-
-def build_model(
-    config: Config, *, key: PRNGKey, frustum: str = "cone", white_background: bool = True
-) -> MixNeRF:
-    """Builds the model that `config` describes.
-
-    **Arguments:**
-
-    - `config`: the run's configuration.
-    - `key`: initialisation randomness.
-    - `frustum`: the dataset's frustum shape, used when `config.model.frustum` is `"auto"`.
-    - `white_background`: composite on white (Blender-style scenes).
-
-    **Returns:**
-
-    A `MixNeRF`; with all NLL weights zero, the mip-NeRF baseline (no mixture heads).
-    """
-    model_cfg = config.model
-    shape = frustum if model_cfg.frustum == "auto" else model_cfg.frustum
-    baseline = config.loss.is_baseline
-    field = MipNeRFField(
-        width=model_cfg.width,
-        depth=model_cfg.depth,
-        view_width=model_cfg.view_width,
-        skip_layer=model_cfg.skip_layer,
-        min_deg=model_cfg.min_deg,
-        max_deg=model_cfg.max_deg,
-        viewdir_max_deg=model_cfg.viewdir_max_deg,
-        density_noise=model_cfg.density_noise,
-        density_bias=model_cfg.density_bias,
-        rgb_padding=model_cfg.rgb_padding,
-        mixture_heads=not baseline,
-        matmul_dtype=model_cfg.matmul_dtype,
-        key=key,
-    )
-    mixture = None
-    if not baseline:
-        mixture = LaplaceMixture(
-            weight_eps=config.loss.weight_eps,
-            likelihood_floor=config.loss.likelihood_floor or None,
-            depth_scale=config.loss.depth_scale,
-            evaluation=config.loss.nll_evaluation,
-        )
-    return MixNeRF(
-        field=field,
-        coarse_sampler=StratifiedSampler(model_cfg.num_coarse_samples, shape, model_cfg.lindisp),
-        fine_sampler=HierarchicalSampler(model_cfg.num_fine_samples, shape, model_cfg.resample_padding),
-        renderer=VolumeRenderer((1.0, 1.0, 1.0) if white_background else None),
-        mixture=mixture,
-        remat=model_cfg.remat,
-    )
-
-
-def init_key(config: Config) -> PRNGKey:
-    """The root random key of a run."""
-    return jax.random.key(config.train.seed)

@@ -1,13 +1,26 @@
 """The dimension vocabulary and array aliases shared by every module.
 
-Dimension names used throughout the package:
+Every jaxtyping shape string in the package uses these dimension names (`tests/test_vocabulary.py`
+checks it):
 
-- `*batch`: any leading batch dimensions (rays, pixels, images).
+- `*batch`: any leading batch dimensions (none, or rays in any layout, pixels, images).
+- `batch`: exactly one flat batch dimension (a chunk of rays, a training batch, a flat list of points).
 - `num_samples`: samples (frustums, mixture components) along one ray.
 - `num_samples+1`: the interval edges that bound those samples.
-- `channels`: colour channels (always 3 here, named for readability).
+- `3`: spatial x, y, z only (points, directions, covariances, pose rows).
+- `channels`: colour channels (3 for RGB, 4 for RGBA files before compositing).
 - `height width`: image dimensions.
-- `features`: the width of an encoding or hidden layer.
+- `num_views`: images (cameras) in a set of views.
+- `num_pixels`: pixels of one view, flattened.
+- `features`: the width of an encoding, a hidden layer or a feature map.
+- `resolution`: occupancy grid cells per axis.
+
+A few functions need a symbol of their own, for a dimension that differs from the shared one
+within one call: the input and output sizes of a layer or an encoding (`in_features`,
+`out_features`), a resize's `out_height out_width`, a sampler's edges before they are tied to
+samples (`num_edges`, `num_prev_edges`, `num_draws`), a slice of the sample axis (`segment`)
+and a convolution's `kernel` size. A name prefixed with `_` only documents a size and is not
+checked (sizes that differ between the entries of a tuple).
 """
 
 from typing import TypeAlias
@@ -18,9 +31,9 @@ from jaxtyping import Array, Bool, Float, Int, Key, PRNGKeyArray, Shaped, UInt32
 Scalar: TypeAlias = Float[Array, ""]
 ScalarLike: TypeAlias = float | Float[Array, ""]
 PRNGKey: TypeAlias = PRNGKeyArray
-# One key per ray (typed keys, or raw uint32 pairs), and four per ray (see `MixNeRF`).
-RayKeys: TypeAlias = Key[Array, " rays"] | UInt32[Array, "rays 2"]
-FourKeysPerRay: TypeAlias = Key[Array, "rays 4"] | UInt32[Array, "rays 4 2"]
+# One key per ray or point (typed keys, or raw uint32 pairs), and four per ray (see `MixNeRF`).
+RayKeys: TypeAlias = Key[Array, " batch"] | UInt32[Array, "batch 2"]
+FourKeysPerRay: TypeAlias = Key[Array, "batch 4"] | UInt32[Array, "batch 4 2"]
 
 # Per-ray quantities (a renderer sees one ray; vmap adds `*batch`).
 Vec3: TypeAlias = Float[Array, "3"]
@@ -36,8 +49,8 @@ PerSample3: TypeAlias = Float[Array, "num_samples 3"]
 PerSampleRGB: TypeAlias = Float[Array, "num_samples channels"]
 
 # Host-side (numpy) image data.
-ImageArray: TypeAlias = Float[np.ndarray, "height width 3"]
-ImageStack: TypeAlias = Float[np.ndarray, "num_views height width 3"]
+ImageArray: TypeAlias = Float[np.ndarray, "height width channels"]
+ImageStack: TypeAlias = Float[np.ndarray, "num_views height width channels"]
 DepthStack: TypeAlias = Float[np.ndarray, "num_views height width"]
 PoseStack: TypeAlias = Float[np.ndarray, "num_views 3 4"]
 

@@ -13,7 +13,7 @@ from ._custom_types import SampledEdges, Vec3
 
 
 def positional_encoding(
-    x: Float[Array, "*batch dim"], min_deg: int, max_deg: int, append_identity: bool = True
+    x: Float[Array, "*batch in_features"], min_deg: int, max_deg: int, append_identity: bool = True
 ) -> Float[Array, "*batch features"]:
     """NeRF's encoding `[x, sin(2^k x), sin(2^k x + pi/2)]` for `k` in `[min_deg, max_deg)`."""
     scales = 2.0 ** jnp.arange(min_deg, max_deg, dtype=x.dtype)

@@ -1,5 +1,7 @@
 """Rendering images in bounded memory, and scoring them against held-out views."""
 
+import dataclasses
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -8,9 +10,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._interrupt import raise_if_interrupted
 from ._model import MixNeRF
 from ._rays import RayBundle
-from ._skipping import RenderStats, Skipping, render_chunk_skipping
+from ._renderer import LevelOutputs
+from ._skipping import RenderCounts, Skipping, render_skipping
 from .data import Dataset, Views, rays_for_views
 from .metrics import (
     average_error,
@@ -25,44 +29,76 @@ from .metrics import (
 
 
 @eqx.filter_jit
-def _render_chunk(model: MixNeRF, rays: RayBundle):
-    outputs = model(rays)
-    return outputs.fine.rgb, outputs.fine.depth, outputs.fine.acc
+def _render_dense(model: MixNeRF, rays: RayBundle) -> LevelOutputs:
+    return model(rays).fine
+
+
+@dataclasses.dataclass(frozen=True)
+class Rendered:
+    """Rendered rays on the host, with what rendering them cost.
+
+    **Fields:**
+
+    - `rgb`, `depth`, `acc`: colour, expected depth and opacity, with the rays' batch shape
+      in front.
+    - `counts`: rays and field evaluations.
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    acc: np.ndarray
+    counts: RenderCounts
+
+    def select(self, index: int) -> "Rendered":
+        """The rays of position `index` along the first batch dimension (e.g. one view)."""
+        return dataclasses.replace(self, rgb=self.rgb[index], depth=self.depth[index], acc=self.acc[index])
+
+
+def _render_chunk(
+    model: MixNeRF, piece: RayBundle, real: int, skipping: Skipping | None
+) -> tuple[LevelOutputs, RenderCounts]:
+    """One chunk of rays, of which the first `real` are real, dense or with skipping."""
+    if skipping is not None:
+        return render_skipping(model, piece, jnp.arange(piece.batch_shape[0]) < real, skipping)
+    per_ray = model.samples_per_ray
+    counts = RenderCounts(
+        rays=real,
+        dense_evaluations=real * per_ray,
+        field_evaluations=real * per_ray,
+        padded_evaluations=piece.batch_shape[0] * per_ray,
+    )
+    return _render_dense(model, piece), counts
 
 
 def render_rays(
-    model: MixNeRF,
-    rays: RayBundle,
-    chunk: int = 4096,
-    *,
-    skipping: Skipping | None = None,
-    stats: RenderStats | None = None,
-):
+    model: MixNeRF, rays: RayBundle, chunk: int = 4096, *, skipping: Skipping | None = None
+) -> Rendered:
     """Deterministically renders any number of rays, `chunk` rays at a time.
 
     Every call of the compiled renderer sees exactly `chunk` rays (the ray table is padded
     once to a whole number of chunks), so it compiles once, and device memory is bounded by
-    the chunk, not by the image. The dense renderer queues the next chunk before it copies
-    the previous one back, so the device does not wait for the host between chunks.
+    the chunk, not by the image. The next chunk is queued before the previous one is copied
+    back, so the device does not wait for the host between chunks.
 
     **Arguments:**
 
     - `model`: the model.
     - `rays`: rays of any batch shape.
     - `chunk`: rays rendered at once.
-    - `skipping`: skip empty space and finished rays (see `mixnerf_eqx._skipping`); `None`
+    - `skipping`: skip empty space and finished rays (`mixnerf_eqx.Skipping`); `None`
       evaluates the field at every sample.
-    - `stats`: a `RenderStats` that receives the ray and field-evaluation counts.
 
     **Returns:**
 
-    `(rgb, depth, acc)` as numpy arrays with `rays.batch_shape` in front.
+    A `Rendered` with `rays.batch_shape` in front.
     """
     if chunk < 1:
         raise ValueError(f"chunk must be at least 1, got {chunk}")
     batch_shape = rays.batch_shape
     flat = rays.reshape(-1)
     count = flat.origins.shape[0]
+    # Memory follows the chunk: never ask for more than the rays there are.
+    chunk = max(1, min(chunk, count))
     num_chunks = -(-count // chunk)
     pad = num_chunks * chunk - count
     if pad:
@@ -72,40 +108,33 @@ def render_rays(
     rgb = np.empty((count, 3), np.float32)
     depth = np.empty((count,), np.float32)
     acc = np.empty((count,), np.float32)
+    counts = RenderCounts()
 
-    def store(index: int, outputs) -> None:
+    def store(index: int, level: LevelOutputs) -> None:
         start, stop = index * chunk, min((index + 1) * chunk, count)
-        out_rgb, out_depth, out_acc = jax.device_get(outputs)
+        out_rgb, out_depth, out_acc = jax.device_get((level.rgb, level.depth, level.acc))
         rgb[start:stop] = out_rgb[: stop - start]
         depth[start:stop] = out_depth[: stop - start]
         acc[start:stop] = out_acc[: stop - start]
 
     pending = None
     for index in range(num_chunks):
-        real = min(chunk, count - index * chunk)
-        piece = chunks[index]
-        if skipping is None:
-            outputs = _render_chunk(model, piece)
-            if stats is not None:
-                samples = model.coarse_sampler.num_samples + model.fine_sampler.num_samples
-                stats.rays += real
-                stats.dense_evaluations += real * samples
-                stats.field_evaluations += real * samples
-                stats.padded_evaluations += chunk * samples
-        else:
-            valid = jnp.arange(chunk) < real
-            fine = render_chunk_skipping(
-                model, piece, valid, skipping, RenderStats() if stats is None else stats
-            )
-            outputs = (fine.rgb, fine.depth, fine.acc)
+        raise_if_interrupted()
+        level, chunk_counts = _render_chunk(model, chunks[index], min(chunk, count - index * chunk), skipping)
+        counts = counts + chunk_counts
         # JAX dispatches asynchronously: this chunk is queued before the previous one is
         # copied back, which is where the host waits.
         if pending is not None:
             store(*pending)
-        pending = (index, outputs)
+        pending = (index, level)
     if pending is not None:
         store(*pending)
-    return rgb.reshape(*batch_shape, 3), depth.reshape(batch_shape), acc.reshape(batch_shape)
+    return Rendered(
+        rgb=rgb.reshape(*batch_shape, 3),
+        depth=depth.reshape(batch_shape),
+        acc=acc.reshape(batch_shape),
+        counts=counts,
+    )
 
 
 def render_views(
@@ -116,24 +145,23 @@ def render_views(
     chunk: int = 4096,
     *,
     skipping: Skipping | None = None,
-    stats: RenderStats | None = None,
-):
+) -> Rendered:
     """Renders every view of `views`; the rays of one view at a time exist on the host.
-
-    `skipping` and `stats` are passed to `render_rays`.
 
     **Returns:**
 
-    `(rgb, depth, acc)` stacked over the views, as numpy arrays.
+    A `Rendered` stacked over the views (`skipping` as in `render_rays`).
     """
     rgb = np.empty((views.num_views, views.height, views.width, 3), np.float32)
     depth = np.empty((views.num_views, views.height, views.width), np.float32)
     acc = np.empty_like(depth)
+    counts = RenderCounts()
     for index in range(views.num_views):
         rays = rays_for_views(views.select([index]), near, far)
-        view_rgb, view_depth, view_acc = render_rays(model, rays, chunk, skipping=skipping, stats=stats)
-        rgb[index], depth[index], acc[index] = view_rgb[0], view_depth[0], view_acc[0]
-    return rgb, depth, acc
+        view = render_rays(model, rays, chunk, skipping=skipping)
+        rgb[index], depth[index], acc[index] = view.rgb[0], view.depth[0], view.acc[0]
+        counts = counts + view.counts
+    return Rendered(rgb=rgb, depth=depth, acc=acc, counts=counts)
 
 
 def image_metrics(
@@ -177,6 +205,24 @@ def mean_metrics(per_view: Sequence[dict[str, Any]]) -> dict[str, float | None]:
     return means
 
 
+@dataclasses.dataclass(frozen=True)
+class Evaluation:
+    """Scores of rendered held-out views.
+
+    **Fields:**
+
+    - `means`: each metric's mean over the views (`None` where it is unavailable).
+    - `per_view`: each view's id and metrics.
+    - `counts`: rays and field evaluations of the renders.
+    - `seconds`: wall-clock time of rendering and scoring.
+    """
+
+    means: dict[str, float | None]
+    per_view: list[dict[str, Any]]
+    counts: RenderCounts
+    seconds: float
+
+
 def evaluate(
     model: MixNeRF,
     dataset: Dataset,
@@ -184,10 +230,9 @@ def evaluate(
     chunk: int = 4096,
     view_ids: Sequence[int] | None = None,
     with_lpips: bool = True,
-    on_view: Callable[[int, dict[str, Any], tuple[np.ndarray, np.ndarray, np.ndarray]], None] | None = None,
+    on_view: Callable[[int, dict[str, Any], Rendered], None] | None = None,
     skipping: Skipping | None = None,
-    stats: RenderStats | None = None,
-):
+) -> Evaluation:
     """Renders the test views one at a time and scores each.
 
     **Arguments:**
@@ -197,27 +242,28 @@ def evaluate(
     - `chunk`: rays rendered at once.
     - `view_ids`: positions of the test views to use (default: all).
     - `with_lpips`: compute LPIPS where its weights are installed.
-    - `on_view`: called as `on_view(position, metrics, (rgb, depth, acc))` after each view,
+    - `on_view`: called as `on_view(position, metrics, rendered view)` after each view,
       e.g. to write its PNGs, so that nothing but the metrics has to be kept.
-    - `skipping`, `stats`: passed to `render_rays`.
+    - `skipping`: passed to `render_rays`.
 
     **Returns:**
 
-    `(mean metrics, per-view metrics)`.
+    An `Evaluation`.
     """
+    started = time.perf_counter()
     views = dataset.test if view_ids is None else dataset.test.select(view_ids)
     per_view = []
+    counts = RenderCounts()
     for index in range(views.num_views):
         one = views.select([index])
-        rgb, depth, acc = render_views(
-            model, one, dataset.near, dataset.far, chunk, skipping=skipping, stats=stats
-        )
+        rendered = render_views(model, one, dataset.near, dataset.far, chunk, skipping=skipping).select(0)
+        counts = counts + rendered.counts
         mask = None if one.masks is None else one.masks[0]
         entry: dict[str, Any] = {"view": int(one.ids[0])}
-        entry.update(image_metrics(rgb[0], one.images[0], mask=mask, with_lpips=with_lpips))
+        entry.update(image_metrics(rendered.rgb, one.images[0], mask=mask, with_lpips=with_lpips))
         if one.depths is not None:
-            entry["depth_mae"] = depth_error(depth[0], one.depths[0])
+            entry["depth_mae"] = depth_error(rendered.depth, one.depths[0])
         per_view.append(entry)
         if on_view is not None:
-            on_view(index, entry, (rgb[0], depth[0], acc[0]))
-    return mean_metrics(per_view), per_view
+            on_view(index, entry, rendered)
+    return Evaluation(mean_metrics(per_view), per_view, counts, time.perf_counter() - started)

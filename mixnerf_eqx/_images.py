@@ -14,7 +14,7 @@ def to_uint8(image: Float[np.ndarray, "height width *channels"]) -> np.ndarray:
 
 def colourise_depth(
     depth: Float[np.ndarray, "height width"], near: float, far: float
-) -> Float[np.ndarray, "height width 3"]:
+) -> Float[np.ndarray, "height width channels"]:
     """Maps depth to a perceptually ordered colour ramp (near bright yellow, far dark blue).
 
     Non-finite depths (no surface) are shown in white.

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._config import LossConfig
 from ._custom_types import PRNGKey
 from ._model import MixNeRF, RenderOutputs
 from ._rays import RayBundle
@@ -32,6 +33,19 @@ class LossWeights:
     depth_nll: float = 1e-3
     regen_nll: float = 1e-4
     nll_levels: str = "coarse"
+
+    @classmethod
+    def from_config(cls, loss: LossConfig, method: str) -> "LossWeights":
+        """The weights `loss` sets for `method` (`"mipnerf"`: no mixture term at all)."""
+        if method == "mipnerf":
+            return cls(coarse_mse=loss.coarse_mse_weight, colour_nll=False, depth_nll=0.0, regen_nll=0.0)
+        return cls(
+            coarse_mse=loss.coarse_mse_weight,
+            colour_nll=loss.lambda_colour_start != 0 or loss.lambda_colour_end != 0,
+            depth_nll=loss.lambda_depth,
+            regen_nll=loss.lambda_regen,
+            nll_levels=loss.nll_levels,
+        )
 
     @property
     def uses_mixture(self) -> bool:

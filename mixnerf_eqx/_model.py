@@ -1,15 +1,23 @@
-"""The MixNeRF model: a field, two samplers, a renderer and a mixture in one pytree."""
+"""The MixNeRF model: a field, two samplers, a renderer and a mixture in one pytree.
+
+Rendering a level is three steps, each a method of the model: `sample_*` places the samples
+(the samplers), `evaluate` calls the field at them, `composite` turns the field's outputs into
+pixels (the renderer). The dense render (`__call__`) and the render that skips empty space
+(`mixnerf_eqx._skipping`) run the same three steps; the second only evaluates fewer samples.
+"""
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
+from ._config import Config
 from ._custom_types import FourKeysPerRay, PRNGKey, RayKeys
-from ._field import AbstractField
-from ._mixture import AbstractMixture
+from ._field import AbstractField, FieldOutputs, MipNeRFField
+from ._mixture import AbstractMixture, LaplaceMixture
 from ._rays import RayBundle, RaySamples
-from ._renderer import AbstractRenderer, LevelOutputs
-from ._sampler import AbstractSampler
+from ._renderer import AbstractRenderer, LevelOutputs, VolumeRenderer
+from ._sampler import AbstractSampler, HierarchicalSampler, StratifiedSampler
 
 
 class RenderOutputs(eqx.Module):
@@ -17,6 +25,12 @@ class RenderOutputs(eqx.Module):
 
     coarse: LevelOutputs
     fine: LevelOutputs
+
+
+def _vmap_sampler(sampler: AbstractSampler, *args, keys: RayKeys | None) -> RaySamples:
+    if keys is None:
+        return jax.vmap(lambda *a: sampler(*a))(*args)
+    return jax.vmap(lambda k, *a: sampler(*a, key=k))(keys, *args)
 
 
 class MixNeRF(eqx.Module):
@@ -30,7 +44,8 @@ class MixNeRF(eqx.Module):
     paper's batch on small machines for about a third more compute.
 
     Any part can be replaced by another implementation of its abstract class, e.g.
-    `eqx.tree_at(lambda m: m.fine_sampler, model, OtherSampler(...))`.
+    `eqx.tree_at(lambda m: m.fine_sampler, model, OtherSampler(...))`; the dense and the
+    skipping render both follow the replacement.
     """
 
     field: AbstractField
@@ -44,31 +59,57 @@ class MixNeRF(eqx.Module):
         if self.mixture is not None and not self.field.has_mixture_heads:
             raise ValueError("a mixture needs a field with mixture heads (beta and ray depth)")
 
-    def _render_level(self, samples: RaySamples, rays: RayBundle, level_keys: RayKeys | None) -> LevelOutputs:
-        """One level of a flat batch of rays: the field at every sample, then compositing.
+    @property
+    def samples_per_ray(self) -> int:
+        """Field evaluations the dense render makes per ray (both levels)."""
+        return self.coarse_sampler.num_samples + self.fine_sampler.num_samples
 
-        The samples of all rays are flattened into one list before the field is called, so
-        that each dense layer is one matrix product over every sample of the batch (a field
+    def sample_coarse(self, rays: RayBundle, keys: RayKeys | None = None) -> RaySamples:
+        """The coarse samples of a flat batch of rays (`keys`: one per ray, or `None`)."""
+        return _vmap_sampler(self.coarse_sampler, rays, keys=keys)
+
+    def sample_fine(self, rays: RayBundle, coarse: LevelOutputs, keys: RayKeys | None = None) -> RaySamples:
+        """The fine samples of a flat batch of rays, drawn from the coarse level's weights."""
+        return _vmap_sampler(self.fine_sampler, rays, coarse.t_edges, coarse.weights, keys=keys)
+
+    def evaluate_points(
+        self,
+        means: Float[Array, "batch 3"],
+        covs: Float[Array, "batch 3"],
+        viewdirs: Float[Array, "batch 3"],
+        keys: RayKeys | None = None,
+    ) -> FieldOutputs:
+        """The field at a flat list of frustum Gaussians (`keys`: one per point, or `None`).
+
+        A flat list makes each dense layer one matrix product over every point (a field
         vmapped over rays and then over samples ran about 1.5x slower on the CPU:
         `benchmarks/README.md`, profile of the training step).
         """
+        field = jax.checkpoint(type(self.field).__call__) if self.remat else type(self.field).__call__
+        if keys is None:
+            return jax.vmap(lambda m, c, v: field(self.field, m, c, v))(means, covs, viewdirs)
+        return jax.vmap(lambda m, c, v, k: field(self.field, m, c, v, key=k))(means, covs, viewdirs, keys)
+
+    def evaluate(self, samples: RaySamples, rays: RayBundle, keys: RayKeys | None = None) -> FieldOutputs:
+        """The field at every sample of a flat batch of rays (`keys`: one per ray, or `None`)."""
         num_rays, num_samples = samples.means.shape[:2]
         points = num_rays * num_samples
         viewdirs = jnp.broadcast_to(rays.viewdirs[:, None, :], (num_rays, num_samples, 3))
-        inputs = (
+        point_keys = None
+        if keys is not None:
+            # Per ray, one key per sample, as `jax.random.split(ray_key, num_samples)`.
+            point_keys = jax.vmap(lambda k: jax.random.split(k, num_samples))(keys)
+            point_keys = point_keys.reshape(points, *point_keys.shape[2:])
+        outputs = self.evaluate_points(
             samples.means.reshape(points, 3),
             samples.covs.reshape(points, 3),
             viewdirs.reshape(points, 3),
+            point_keys,
         )
-        field = jax.checkpoint(type(self.field).__call__) if self.remat else type(self.field).__call__
-        if level_keys is None:
-            outputs = jax.vmap(lambda m, c, v: field(self.field, m, c, v))(*inputs)
-        else:
-            # Per ray, one key per sample, as `jax.random.split(ray_key, num_samples)`.
-            keys = jax.vmap(lambda k: jax.random.split(k, num_samples))(level_keys)
-            keys = keys.reshape(points, *keys.shape[2:])
-            outputs = jax.vmap(lambda m, c, v, k: field(self.field, m, c, v, key=k))(*inputs, keys)
-        outputs = jax.tree_util.tree_map(lambda x: x.reshape(num_rays, num_samples, *x.shape[1:]), outputs)
+        return jax.tree_util.tree_map(lambda x: x.reshape(num_rays, num_samples, *x.shape[1:]), outputs)
+
+    def composite(self, outputs: FieldOutputs, samples: RaySamples, rays: RayBundle) -> LevelOutputs:
+        """The renderer over a flat batch of rays."""
         return jax.vmap(self.renderer)(outputs, samples.t_edges, rays)
 
     def _render_flat(self, rays: RayBundle, ray_keys: FourKeysPerRay | None) -> RenderOutputs:
@@ -81,15 +122,10 @@ class MixNeRF(eqx.Module):
         def keys(index: int):
             return None if ray_keys is None else ray_keys[:, index]
 
-        def sample(sampler, *args, key):
-            if key is None:
-                return jax.vmap(lambda *a: sampler(*a))(*args)
-            return jax.vmap(lambda k, *a: sampler(*a, key=k))(key, *args)
-
-        coarse_samples = sample(self.coarse_sampler, rays, key=keys(0))
-        coarse = self._render_level(coarse_samples, rays, keys(1))
-        fine_samples = sample(self.fine_sampler, rays, coarse.t_edges, coarse.weights, key=keys(2))
-        fine = self._render_level(fine_samples, rays, keys(3))
+        coarse_samples = self.sample_coarse(rays, keys(0))
+        coarse = self.composite(self.evaluate(coarse_samples, rays, keys(1)), coarse_samples, rays)
+        fine_samples = self.sample_fine(rays, coarse, keys(2))
+        fine = self.composite(self.evaluate(fine_samples, rays, keys(3)), fine_samples, rays)
         return RenderOutputs(coarse=coarse, fine=fine)
 
     def render_ray(self, ray: RayBundle, *, key: PRNGKey | None = None) -> RenderOutputs:
@@ -121,3 +157,56 @@ class MixNeRF(eqx.Module):
             )
         outputs = self._render_flat(flat, ray_keys)
         return jax.tree_util.tree_map(lambda x: x.reshape(*batch_shape, *x.shape[1:]), outputs)
+
+
+def build_model(
+    config: Config, *, key: PRNGKey, frustum: str = "cone", white_background: bool = True
+) -> MixNeRF:
+    """Builds the model that `config` describes.
+
+    **Arguments:**
+
+    - `config`: the run's configuration; `config.method` chooses MixNeRF or the mip-NeRF
+      baseline, `config.model` the field and samplers, `config.loss` the mixture's numerics.
+    - `key`: initialisation randomness.
+    - `frustum`: the dataset's frustum shape, used when `config.model.frustum` is `"auto"`.
+    - `white_background`: composite on white (Blender-style scenes).
+
+    **Returns:**
+
+    A `MixNeRF`; for `method = "mipnerf"`, without mixture heads and mixture.
+    """
+    model_cfg = config.model
+    shape = frustum if model_cfg.frustum == "auto" else model_cfg.frustum
+    mixture_model = config.method == "mixnerf"
+    field = MipNeRFField(
+        width=model_cfg.width,
+        depth=model_cfg.depth,
+        view_width=model_cfg.view_width,
+        skip_layer=model_cfg.skip_layer,
+        min_deg=model_cfg.min_deg,
+        max_deg=model_cfg.max_deg,
+        viewdir_max_deg=model_cfg.viewdir_max_deg,
+        density_noise=model_cfg.density_noise,
+        density_bias=model_cfg.density_bias,
+        rgb_padding=model_cfg.rgb_padding,
+        mixture_heads=mixture_model,
+        matmul_dtype=model_cfg.matmul_dtype,
+        key=key,
+    )
+    mixture = None
+    if mixture_model:
+        mixture = LaplaceMixture(
+            weight_eps=config.loss.weight_eps,
+            likelihood_floor=config.loss.likelihood_floor or None,
+            depth_scale=config.loss.depth_scale,
+            evaluation=config.loss.nll_evaluation,
+        )
+    return MixNeRF(
+        field=field,
+        coarse_sampler=StratifiedSampler(model_cfg.num_coarse_samples, shape, model_cfg.lindisp),
+        fine_sampler=HierarchicalSampler(model_cfg.num_fine_samples, shape, model_cfg.resample_padding),
+        renderer=VolumeRenderer((1.0, 1.0, 1.0) if white_background else None),
+        mixture=mixture,
+        remat=model_cfg.remat,
+    )

@@ -29,7 +29,8 @@ class OccupancyGrid(eqx.Module):
     - `density`: per cell, the running maximum of the sampled density (`inf`: not yet
       evaluated). Index order is `(x, y, z)`.
     - `box_min`, `box_max`: the corners of the box.
-    - `threshold` (static): a cell is occupied where its density exceeds this.
+    - `threshold`: a cell is occupied where its density exceeds this. An array leaf, so a
+      grid with another threshold (`with_threshold`) reuses every compiled render.
     - `dilation` (static): occupied cells also mark this many neighbours on every side.
     - `outside_occupied` (static): whether points outside the box count as occupied (the box
       is a guess) or empty (the scene is known to lie inside it).
@@ -38,7 +39,7 @@ class OccupancyGrid(eqx.Module):
     density: Float[Array, "resolution resolution resolution"]
     box_min: Float[Array, "3"]
     box_max: Float[Array, "3"]
-    threshold: float = eqx.field(static=True)
+    threshold: Float[Array, ""]
     dilation: int = eqx.field(static=True)
     outside_occupied: bool = eqx.field(static=True)
 
@@ -47,6 +48,10 @@ class OccupancyGrid(eqx.Module):
             raise ValueError(f"the grid must be a cube, got shape {self.density.shape}")
         if self.dilation < 0:
             raise ValueError(f"dilation must be >= 0, got {self.dilation}")
+
+    def with_threshold(self, threshold: float | Float[Array, ""]) -> "OccupancyGrid":
+        """The same grid with another density threshold."""
+        return eqx.tree_at(lambda g: g.threshold, self, jnp.asarray(threshold, jnp.float32))
 
     @property
     def resolution(self) -> int:
@@ -109,7 +114,7 @@ def empty_grid(
         density=jnp.full((resolution,) * 3, jnp.inf, jnp.float32),
         box_min=box_min,
         box_max=box_max,
-        threshold=threshold,
+        threshold=jnp.asarray(threshold, jnp.float32),
         dilation=dilation,
         outside_occupied=outside_occupied,
     )

@@ -100,8 +100,8 @@ def intrinsic_matrix(focal_x: float, focal_y: float, cx: float, cy: float) -> Fl
 
 
 def intrinsic_directions(
-    intrinsics: Float[np.ndarray, "*views 3 3"], height: int, width: int
-) -> Float[np.ndarray, "*views height width 3"]:
+    intrinsics: Float[np.ndarray, "*batch 3 3"], height: int, width: int
+) -> Float[np.ndarray, "*batch height width 3"]:
     """Camera-space (OpenGL) unnormalised directions through every pixel centre (float64).
 
     **Arguments:**

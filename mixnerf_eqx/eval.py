@@ -8,10 +8,20 @@ table. LPIPS needs the optional `lpips` extra; without it LPIPS is reported as u
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
+
+import jax
+
+from ._config import ConfigError
+from ._evaluate import Rendered, evaluate
+from ._interrupt import deferred_interrupts
+from ._progress import Progress
+from ._run import Run, grid_for_rendering, make_skipping, render_summary, restore_run, write_view_renders
+from ._typecheck import add_typecheck_argument, typecheck_argument
+from .data import DatasetError, evenly_spaced
+from .metrics import lpips_available
 
 METRIC_COLUMNS = ("psnr", "ssim", "lpips", "average", "depth_mae")
 
@@ -25,9 +35,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
     )
-    parser.add_argument("--chunk", type=int, default=None, help="rays rendered at once (default: the run's)")
     parser.add_argument(
-        "--max-views", type=int, default=0, help="evaluate this many test views, evenly spaced"
+        "--chunk", type=int, default=None, help="rays rendered at once, at most a view's (default: the run's)"
+    )
+    parser.add_argument(
+        "--max-views", type=int, default=0, help="evaluate this many test views, evenly spaced (0: all)"
     )
     parser.add_argument(
         "--skipping",
@@ -39,9 +51,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/eval)")
     parser.add_argument("--no-renders", action="store_true", help="write no PNGs")
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
-    parser.add_argument("--no-typecheck", action="store_true", help="turn off runtime shape checks")
+    add_typecheck_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    return parser.parse_args(argv)
+    return parser.parse_intermixed_args(argv)
 
 
 def format_table(per_view: list[dict], means: dict) -> str:
@@ -60,113 +72,75 @@ def format_table(per_view: list[dict], means: dict) -> str:
     return "\n".join(lines)
 
 
-def load_run(run_dir: Path, checkpoint: Path | None = None, data_dir: str | None = None):
-    """A training run's config, dataset and trained model.
-
-    **Arguments:**
-
-    - `run_dir`: the run's folder (holds `config.json` and `checkpoints/`).
-    - `checkpoint`: the checkpoint folder (default: the latest).
-    - `data_dir`: the dataset root, replacing the run's.
-
-    **Returns:**
-
-    `(config, dataset, model, step, checkpoint, key)`, `key` being the run's training key.
-    """
-    import dataclasses
-
-    import equinox as eqx
-    import jax
-
-    from mixnerf_eqx import ConfigError, build_model
-    from mixnerf_eqx._checkpoint import latest_checkpoint, load_checkpoint, read_checkpoint_meta
-    from mixnerf_eqx._config import config_from_dict, init_key
-    from mixnerf_eqx._train import make_optimizer
-    from mixnerf_eqx.data import load_dataset
-
-    run_dir = Path(run_dir)
-    if not (run_dir / "config.json").is_file():
-        raise ConfigError(f"{run_dir} is not a training run: it has no config.json. Pass a run folder.")
-    checkpoint = checkpoint or latest_checkpoint(run_dir)
-    if checkpoint is None:
-        raise ConfigError(f"{run_dir} holds no checkpoint yet; train first (python -m mixnerf_eqx.train).")
-    if not (Path(checkpoint) / "state.eqx").is_file():
-        raise ConfigError(f"{checkpoint} is not a checkpoint folder (no state.eqx).")
-    try:
-        config_dict = json.loads((run_dir / "config.json").read_text())
-    except json.JSONDecodeError as error:
-        raise ConfigError(f"{run_dir / 'config.json'}: not valid JSON ({error})") from None
-    config = config_from_dict(config_dict, str(run_dir / "config.json"))
-    if data_dir is not None:
-        config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=data_dir))
-    dataset = load_dataset(config.data)
-    model_key, train_key = jax.random.split(init_key(config))
-    model = build_model(
-        config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background
+def _skipping_for(run: Run, mode: str):
+    """The grid, skipping options and calibration choice `--skipping` asks for, and its time."""
+    started = time.perf_counter()
+    config = run.config
+    if not (mode == "on" or (mode == "auto" and config.occupancy.enabled)):
+        return None, None, None, 0.0
+    grid, choice = grid_for_rendering(
+        config.occupancy, run.dataset, run.model, key=jax.random.fold_in(run.state.key, run.step)
     )
-    opt_state = make_optimizer(config).init(eqx.filter(model, eqx.is_array))
-    model, _, step, train_key = load_checkpoint(checkpoint, model=model, opt_state=opt_state, key=train_key)
-    step = read_checkpoint_meta(checkpoint).get("step", step)
-    return config, dataset, model, step, checkpoint, train_key
+    return grid, make_skipping(config.occupancy, grid), choice, time.perf_counter() - started
+
+
+def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None:
+    print(format_table(result["per_view"], result["mean"]))
+    print(
+        f"\n{result['scene']}, step {result['step']}, {result['num_views']} views in "
+        f"{result['seconds']:.1f} s; LPIPS {result['lpips']}"
+    )
+    render = result["render"]
+    if grid is not None:
+        how = "calibrated" if choice is not None else "from the config"
+        if choice is not None and not choice.within_tolerance:
+            how += f", no threshold kept the bound within {choice.tolerance_db} dB"
+        print(
+            f"skipping: density threshold {float(grid.threshold):.4g} ({how}), "
+            f"{render['occupied_fraction']:.1%} of the grid occupied, "
+            f"{render['field_evaluations_per_frame']:.0f} field evaluations per frame instead of "
+            f"{render['dense_evaluations_per_frame']:.0f} ({render['evaluation_reduction']:.2f}x fewer)"
+        )
+    print(f"metrics: {out / 'metrics.json'}")
+    if renders:
+        print(f"renders: {out}")
 
 
 def run(args: argparse.Namespace) -> dict:
     """Evaluates as `args` say and returns what was written to `metrics.json`."""
-    import dataclasses
-
-    import jax
-    from tqdm.auto import tqdm
-
-    from mixnerf_eqx._evaluate import evaluate
-    from mixnerf_eqx._skipping import RenderStats
-    from mixnerf_eqx._train import make_skipping, occupancy_for_model, render_summary, write_view_renders
-    from mixnerf_eqx.data._splits import evenly_spaced
-    from mixnerf_eqx.metrics import lpips_available
-
     run_dir = args.run_dir
-    config, dataset, model, step, checkpoint, train_key = load_run(run_dir, args.checkpoint, args.data_dir)
-    use_skipping = args.skipping == "on" or (args.skipping == "auto" and config.occupancy.enabled)
-    chunk = args.chunk or (config.occupancy.chunk if use_skipping else config.train.render_chunk)
-
+    restored = restore_run(run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
+    config, dataset = restored.config, restored.dataset
+    grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
+    chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
     view_ids = None
     if args.max_views > 0:
         view_ids = evenly_spaced(dataset.test.num_views, min(args.max_views, dataset.test.num_views))
     num_views = dataset.test.num_views if view_ids is None else len(view_ids)
     out = args.out or run_dir / "eval"
     out.mkdir(parents=True, exist_ok=True)
-    views = dataset.test if view_ids is None else dataset.test.select(view_ids)
-    subset = dataclasses.replace(dataset, test=views)
-    bar = tqdm(total=num_views, disable=args.no_progress, unit="view", dynamic_ncols=True)
+    bar = Progress(num_views, unit="view", enabled=not args.no_progress)
+    chosen = dataset.test if view_ids is None else dataset.test.select(view_ids)
 
-    def after_view(index: int, entry: dict, outputs) -> None:
+    def after_view(index: int, entry: dict, rendered: Rendered) -> None:
         if not args.no_renders:
-            write_view_renders(out, subset, index, entry["view"], outputs)
-        bar.set_postfix(psnr=f"{entry['psnr']:.2f}")
-        bar.update(1)
+            truth = chosen.images[index]
+            write_view_renders(out, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
+        bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
 
-    started = time.perf_counter()
-    grid = skipping = choice = None
-    if use_skipping:
-        grid, choice = occupancy_for_model(
-            config, dataset, model, key=jax.random.fold_in(train_key, step), with_choice=True
-        )
-        skipping = make_skipping(config, grid)
-    grid_seconds = time.perf_counter() - started
-    stats = RenderStats()
     try:
-        means, per_view = evaluate(
-            model,
-            subset,
+        evaluation = evaluate(
+            restored.model,
+            dataset,
             chunk=chunk,
+            view_ids=view_ids,
             with_lpips=not args.no_lpips,
             on_view=after_view,
             skipping=skipping,
-            stats=stats,
         )
     finally:
         bar.close()
-    seconds = time.perf_counter() - started
-    render = render_summary(stats, seconds - grid_seconds, num_views, grid, choice)
+    render = render_summary(evaluation.counts, evaluation.seconds, num_views, grid, choice)
     render["grid_seconds"] = grid_seconds
     lpips_note = "computed"
     if args.no_lpips:
@@ -175,47 +149,43 @@ def run(args: argparse.Namespace) -> dict:
         lpips_note = "unavailable: install the lpips extra (pip install -e '.[lpips]')"
     result = {
         "run_dir": str(run_dir),
-        "checkpoint": str(checkpoint),
-        "step": step,
+        "checkpoint": str(restored.checkpoint),
+        "step": restored.step,
         "scene": dataset.name,
         "num_views": num_views,
         "lpips": lpips_note,
-        "seconds": seconds,
+        "seconds": evaluation.seconds + grid_seconds,
         "render": render,
-        "mean": means,
-        "per_view": per_view,
+        "mean": evaluation.means,
+        "per_view": evaluation.per_view,
     }
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
-    print(format_table(per_view, means))
-    print(f"\n{dataset.name}, step {step}, {num_views} views in {seconds:.1f} s; LPIPS {lpips_note}")
-    if grid is not None:
-        how = "calibrated" if choice is not None else "from the config"
-        if choice is not None and not choice.within_tolerance:
-            how += f", no threshold kept the bound within {choice.tolerance_db} dB"
-        print(
-            f"skipping: density threshold {grid.threshold:.4g} ({how}), "
-            f"{render['occupied_fraction']:.1%} of the grid occupied, "
-            f"{render['field_evaluations_per_frame']:.0f} field evaluations per frame instead of "
-            f"{render['dense_evaluations_per_frame']:.0f} ({render['evaluation_reduction']:.2f}x fewer)"
-        )
-    print(f"metrics: {out / 'metrics.json'}")
-    if not args.no_renders:
-        print(f"renders: {out}")
+    _print_summary(result, grid, choice, out, not args.no_renders)
     return result
+
+
+def _check_arguments(args: argparse.Namespace) -> None:
+    if args.chunk is not None and args.chunk < 1:
+        raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
+    if args.max_views < 0:
+        raise ConfigError(f"--max-views must be 0 (all test views) or positive, got {args.max_views}")
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if args.no_typecheck:
-        os.environ["MIXNERF_EQX_TYPECHECK"] = "0"
-    from mixnerf_eqx import ConfigError
-
     try:
-        run(args)
-    except (ConfigError, ValueError, FileNotFoundError) as error:
+        with typecheck_argument(args), deferred_interrupts():
+            _check_arguments(args)
+            run(args)
+    except (ConfigError, DatasetError, ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except OSError as error:
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"error: {where}{error.strerror or error}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
+        print("\ninterrupted: evaluation stopped; nothing was changed in the run", file=sys.stderr)
         return 130
     return 0
 

@@ -65,22 +65,52 @@ def test_config_is_frozen():
 
 
 def test_baseline_has_no_mixture_parts():
-    baseline = load_config(
-        None,
-        [
-            "loss.lambda_colour_start=0",
-            "loss.lambda_colour_end=0",
-            "loss.lambda_depth=0",
-            "loss.lambda_regen=0",
-        ],
-    )
-    assert baseline.loss.is_baseline
+    baseline = load_config(None, ["method=mipnerf"])
     model = build_model(baseline, key=jax.random.key(0))
     assert model.mixture is None
     assert not model.field.has_mixture_heads
     mixnerf = build_model(load_config(None), key=jax.random.key(0))
     assert isinstance(mixnerf.mixture, mx.LaplaceMixture)
     assert mixnerf.field.has_mixture_heads
+
+
+def test_method_is_chosen_not_inferred():
+    """Zero mixture weights no longer make a baseline: the config says so, and says what to do."""
+    zeros = [
+        "loss.lambda_colour_start=0",
+        "loss.lambda_colour_end=0",
+        "loss.lambda_depth=0",
+        "loss.lambda_regen=0",
+    ]
+    with pytest.raises(ConfigError, match='method = "mipnerf"'):
+        load_config(None, zeros)
+    assert load_config(None, [*zeros, "method=mipnerf"]).method == "mipnerf"
+    with pytest.raises(ConfigError, match="method"):
+        load_config(None, ["method=nerf"])
+
+
+def test_removed_keys_of_older_runs_warn_and_are_ignored():
+    stored = mx.config_from_dict({"train": {"max_steps": 5}})
+    with pytest.warns(DeprecationWarning, match="typecheck is no longer a setting.*--no-typecheck"):
+        old = mx.config_from_dict({"train": {"max_steps": 5, "typecheck": False}})
+    assert old == stored
+
+
+def test_schema_imports_no_model():
+    """Loading a config or a scene must not import the model: `_config` is the bottom layer."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, importlib.util;"
+        "spec = importlib.util.find_spec('mixnerf_eqx');"
+        "import mixnerf_eqx._config as c, ast, inspect;"
+        "tree = ast.parse(inspect.getsource(c));"
+        "names = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level];"
+        "print(names)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out
 
 
 def test_paper_architecture_sizes():
@@ -95,7 +125,9 @@ def test_paper_architecture_sizes():
 
 
 def test_extends_inherits_and_overrides(tmp_path):
-    (tmp_path / "base.toml").write_text('name = "base"\nreproduces = "x"\n[model]\nwidth = 48\ndepth = 3\n')
+    (tmp_path / "base.toml").write_text(
+        'name = "base"\nreproduces = "x"\n[model]\nwidth = 48\ndepth = 3\nskip_layer = 2\n'
+    )
     (tmp_path / "child.toml").write_text('extends = "base.toml"\nname = "child"\n[model]\ndepth = 5\n')
     config = load_config(tmp_path / "child.toml")
     assert (config.name, config.model.width, config.model.depth) == ("child", 48, 5)
@@ -107,7 +139,7 @@ def test_extends_inherits_and_overrides(tmp_path):
 def test_baseline_config_is_builtin_without_nlls():
     mixnerf = load_config("configs/builtin.toml")
     baseline = load_config("configs/builtin_mipnerf.toml")
-    assert baseline.loss.is_baseline and not mixnerf.loss.is_baseline
+    assert baseline.method == "mipnerf" and mixnerf.method == "mixnerf"
     assert (
         baseline.model == mixnerf.model and baseline.data == mixnerf.data and baseline.optim == mixnerf.optim
     )

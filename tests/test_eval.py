@@ -6,8 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from mixnerf_eqx._evaluate import evaluate, render_rays, render_views
-from mixnerf_eqx._train import fit
+from mixnerf_eqx import evaluate, fit, render_rays, render_views
 from mixnerf_eqx.data import rays_for_views
 from mixnerf_eqx.eval import main as eval_main
 from mixnerf_eqx.metrics import lpips_available
@@ -35,17 +34,23 @@ def test_chunked_rendering_does_not_depend_on_the_chunk(trained, tiny_scene):
     # 1024 rays: one whole chunk, or 7 chunks of 150 with the last one padded.
     whole = render_rays(trained.model, rays, chunk=1024)
     pieces = render_rays(trained.model, rays, chunk=150)
-    for a, b in zip(whole, pieces, strict=True):
+    for name in ("rgb", "depth", "acc"):
+        a, b = getattr(whole, name), getattr(pieces, name)
         assert a.shape == b.shape
         np.testing.assert_allclose(a, b, atol=1e-5)
+    # Counts: every real ray once; the padding of the last chunk is evaluated, not needed.
+    per_ray = trained.model.samples_per_ray
+    assert whole.counts.rays == pieces.counts.rays == 1024
+    assert pieces.counts.field_evaluations == 1024 * per_ray
+    assert pieces.counts.padded_evaluations == 7 * 150 * per_ray
     per_view = render_views(trained.model, views, tiny_scene.near, tiny_scene.far, chunk=150)
-    np.testing.assert_allclose(per_view[0], whole[0], atol=1e-5)
+    np.testing.assert_allclose(per_view.rgb, whole.rgb, atol=1e-5)
     # More rays than one chunk holds, fewer than two, and none at all.
     few = rays.reshape(-1)[:7]
     np.testing.assert_allclose(
-        render_rays(trained.model, few, chunk=5)[0], whole[0].reshape(-1, 3)[:7], atol=1e-5
+        render_rays(trained.model, few, chunk=5).rgb, whole.rgb.reshape(-1, 3)[:7], atol=1e-5
     )
-    assert render_rays(trained.model, rays.reshape(-1)[:0], chunk=5)[0].shape == (0, 3)
+    assert render_rays(trained.model, rays.reshape(-1)[:0], chunk=5).rgb.shape == (0, 3)
     with pytest.raises(ValueError, match="chunk"):
         render_rays(trained.model, rays, chunk=0)
 
@@ -107,9 +112,10 @@ def test_eval_with_skipping_reports_its_cost_and_stays_within_a_tenth_of_a_db(tr
 
 
 def test_evaluate_means_are_means_of_the_views(trained, tiny_scene):
-    means, per_view = evaluate(trained.model, tiny_scene, chunk=512, with_lpips=False)
-    assert means["psnr"] == pytest.approx(np.mean([v["psnr"] for v in per_view]))
-    assert means["lpips"] is None
+    result = evaluate(trained.model, tiny_scene, chunk=512, with_lpips=False)
+    assert result.means["psnr"] == pytest.approx(np.mean([v["psnr"] for v in result.per_view]))
+    assert result.means["lpips"] is None
+    assert result.counts.rays == tiny_scene.test.num_views * tiny_scene.test.height * tiny_scene.test.width
 
 
 @pytest.mark.parametrize("argument", ["does_not_exist", "."])
@@ -127,7 +133,7 @@ def test_eval_of_a_folder_that_is_no_run_is_one_clear_error(argument, tmp_path):
 
 
 def test_masked_scores_follow_the_dtu_protocol():
-    from mixnerf_eqx._evaluate import image_metrics
+    from mixnerf_eqx import image_metrics
     from mixnerf_eqx.metrics import ssim
 
     rng = np.random.default_rng(0)

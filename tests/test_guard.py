@@ -5,13 +5,18 @@ import hashlib
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mixnerf_eqx as mx
-from mixnerf_eqx._checkpoint import latest_checkpoint
-from mixnerf_eqx._train import TrainingDiverged, fit, make_optimizer, make_train_step, training_rays
+from mixnerf_eqx import (
+    TrainingDiverged,
+    draw_batch,
+    fit,
+    init_train_state,
+    latest_checkpoint,
+    make_train_step,
+    training_rays,
+)
 
 
 def _poisoned(scene, image_ids):
@@ -26,23 +31,22 @@ def _arrays(tree):
 
 def test_non_finite_step_leaves_model_and_optimiser_untouched(tiny_config, tiny_scene):
     poisoned = _poisoned(tiny_scene, range(tiny_scene.train.num_views))
-    model = mx.build_model(tiny_config, key=jax.random.key(0))
-    optimizer = make_optimizer(tiny_config)
-    opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
-    step_fn = make_train_step(tiny_config, optimizer)
-    new_model, new_state, metrics = step_fn(
-        model, opt_state, training_rays(poisoned), jnp.asarray(0, jnp.int32), jax.random.key(1)
-    )
+    state = init_train_state(tiny_config, tiny_scene)
+    step_fn = make_train_step(tiny_config)
+    batch_size = tiny_config.train.batch_size
+    new_state, metrics = step_fn(state, draw_batch(training_rays(poisoned), state, batch_size))
     assert bool(metrics.skipped)
     assert not np.isfinite(float(metrics.terms.total))
-    for before, after in zip(_arrays((model, opt_state)), _arrays((new_model, new_state)), strict=True):
+    kept = (state.model, state.opt_state)
+    for before, after in zip(_arrays(kept), _arrays((new_state.model, new_state.opt_state)), strict=True):
         np.testing.assert_array_equal(before, after)
+    # The step still counts, so that the next one draws another batch.
+    assert int(new_state.step) == 1
     # The same step on clean data is applied.
-    clean_model, _, clean_metrics = step_fn(
-        model, opt_state, training_rays(tiny_scene), jnp.asarray(0, jnp.int32), jax.random.key(1)
-    )
+    clean, clean_metrics = step_fn(state, draw_batch(training_rays(tiny_scene), state, batch_size))
     assert not bool(clean_metrics.skipped)
-    assert any(not np.array_equal(a, b) for a, b in zip(_arrays(model), _arrays(clean_model), strict=True))
+    changed = zip(_arrays(state.model), _arrays(clean.model), strict=True)
+    assert any(not np.array_equal(a, b) for a, b in changed)
 
 
 @pytest.mark.slow
@@ -91,8 +95,7 @@ def test_diverging_run_stops_and_keeps_the_last_good_checkpoint(tiny_config, tin
 def test_stress_runs_stay_finite(tiny_config, tiny_scene, overrides, far):
     from conftest import TINY_OVERRIDES
 
-    from mixnerf_eqx import load_config
-    from mixnerf_eqx._train import render_views
+    from mixnerf_eqx import load_config, render_views
     from mixnerf_eqx.data import load_dataset
 
     config = load_config("configs/builtin.toml", [*TINY_OVERRIDES, *overrides, "train.max_steps=60"])
@@ -107,5 +110,5 @@ def test_stress_runs_stay_finite(tiny_config, tiny_scene, overrides, far):
     for entry in result.history:
         assert all(np.isfinite(v) for v in entry.values()), entry
     assert all(np.all(np.isfinite(a)) for a in _arrays(result.model))
-    rgb, depth, acc = render_views(result.model, dataset.test, dataset.near, dataset.far)
-    assert np.all(np.isfinite(rgb)) and np.all(np.isfinite(depth)) and np.all(np.isfinite(acc))
+    rendered = render_views(result.model, dataset.test, dataset.near, dataset.far)
+    assert all(np.all(np.isfinite(x)) for x in (rendered.rgb, rendered.depth, rendered.acc))

@@ -14,17 +14,15 @@ import pytest
 from jaxtyping import Array, Float
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import ConfigError
+from mixnerf_eqx import ConfigError, Skipping, fit, render_rays
 from mixnerf_eqx._calibrate import psnr_drop_bound
-from mixnerf_eqx._evaluate import render_rays
 from mixnerf_eqx._occupancy import (
     empty_grid,
     frustum_box,
     refresh_occupancy,
     update_occupancy,
 )
-from mixnerf_eqx._skipping import RenderStats, Skipping, _coarse_samples, _render_level
-from mixnerf_eqx._train import fit
+from mixnerf_eqx._skipping import _render_level, _sample_coarse
 from mixnerf_eqx.metrics import psnr
 
 
@@ -102,7 +100,7 @@ def test_dilation_marks_the_neighbours_of_occupied_cells():
         density=jnp.asarray(density),
         box_min=jnp.zeros(3),
         box_max=jnp.ones(3),
-        threshold=0.5,
+        threshold=jnp.asarray(0.5),
         dilation=1,
         outside_occupied=False,
     )
@@ -121,7 +119,7 @@ def test_lookup_matches_a_numpy_reference(outside_occupied):
         density=jnp.asarray(mask.astype(np.float32)),
         box_min=jnp.asarray(box_min, jnp.float32),
         box_max=jnp.asarray(box_max, jnp.float32),
-        threshold=0.5,
+        threshold=jnp.asarray(0.5),
         dilation=0,
         outside_occupied=outside_occupied,
     )
@@ -180,27 +178,66 @@ def test_skipping_nothing_equals_the_dense_render(tiny_config):
     model = mx.build_model(tiny_config, key=jax.random.key(0))
     rays = _camera_rays(size=12)
     dense = render_rays(model, rays, 100)
-    stats = RenderStats()
-    sparse = render_rays(model, rays, 100, skipping=Skipping(None, 0.0, 3, min_bucket=64), stats=stats)
-    for a, b in zip(dense, sparse, strict=True):
-        np.testing.assert_allclose(a, b, atol=2e-6)
-    assert stats.rays == 144 and stats.field_evaluations == stats.dense_evaluations == 144 * 32
+    sparse = render_rays(model, rays, 100, skipping=Skipping(None, 0.0, 3, min_bucket=64))
+    for name in ("rgb", "depth", "acc"):
+        np.testing.assert_allclose(getattr(dense, name), getattr(sparse, name), atol=2e-6)
+    counts = sparse.counts
+    assert counts.rays == 144 and counts.field_evaluations == counts.dense_evaluations == 144 * 32
+
+
+class TintedRenderer(mx.AbstractRenderer):
+    """A different renderer: the volume renderer over a grey background, colours tinted.
+
+    Swapped into a model, both the dense and the skipping render must follow it."""
+
+    inner: mx.VolumeRenderer
+    tint: Float[Array, "3"]
+
+    def __call__(self, outputs, t_edges, ray):
+        level = self.inner(outputs, t_edges, ray)
+        return eqx.tree_at(lambda lv: lv.rgb, level, level.rgb * self.tint)
+
+
+def test_swapped_renderer_and_sampler_are_followed_by_the_skipping_render(tiny_config):
+    model = mx.build_model(tiny_config, key=jax.random.key(0))
+    rays = _camera_rays(size=10)
+    tinted = TintedRenderer(mx.VolumeRenderer((0.5, 0.5, 0.5)), jnp.array([1.0, 0.5, 0.25]))
+    swapped = eqx.tree_at(lambda m: m.renderer, model, tinted)
+    swapped = eqx.tree_at(lambda m: m.coarse_sampler, swapped, mx.StratifiedSampler(24, "cone", lindisp=True))
+    nothing_skipped = Skipping(None, 0.0, 3, min_bucket=64)
+    dense = render_rays(swapped, rays, 100)
+    sparse = render_rays(swapped, rays, 100, skipping=nothing_skipped)
+    for name in ("rgb", "depth", "acc"):
+        np.testing.assert_allclose(getattr(dense, name), getattr(sparse, name), atol=2e-6)
+    # The swap changed the image (so the agreement above is about the swapped parts).
+    original = render_rays(model, rays, 100)
+    assert np.max(np.abs(original.rgb - dense.rgb)) > 0.05
+    assert sparse.counts.dense_evaluations == 100 * (24 + 16)
+
+
+def test_grid_threshold_is_an_array_leaf():
+    grid = empty_grid((-1.0,) * 3, (1.0,) * 3, resolution=4, threshold=0.5)
+    leaves = jax.tree_util.tree_leaves(grid)
+    assert any(leaf is grid.threshold for leaf in leaves)
+    raised = grid.with_threshold(2.0)
+    assert float(raised.threshold) == 2.0
+    # Same structure: a render compiled for one threshold serves every other.
+    assert jax.tree_util.tree_structure(raised) == jax.tree_util.tree_structure(grid)
 
 
 def test_stopping_finished_rays_changes_a_level_by_at_most_the_threshold():
     model = _sphere_model(_sphere(inside=5.0))
     rays = _camera_rays(size=16, zoom=5.0)  # the sphere fills the frame
-    samples = _coarse_samples(model, rays)
+    samples = _sample_coarse(model, rays)
     valid = jnp.ones(rays.batch_shape, bool)
-    dense = _render_level(model, rays, samples, valid, Skipping(None, 0.0, 1), RenderStats())
-    stats = RenderStats()
+    dense, _ = _render_level(model, rays, samples, valid, Skipping(None, 0.0, 1))
     stop = 0.05
-    cut = _render_level(model, rays, samples, valid, Skipping(None, stop, 16, min_bucket=16), stats)
+    cut, counts = _render_level(model, rays, samples, valid, Skipping(None, stop, 16, min_bucket=16))
     # The dropped samples come after transmittance fell below `stop`, so their weights sum to
     # less than it, and each moves the colour by at most |c - background| <= 1 per unit weight.
     assert float(jnp.max(jnp.abs(cut.acc - dense.acc))) <= stop
     assert float(jnp.max(jnp.abs(cut.rgb - dense.rgb))) <= stop
-    assert stats.field_evaluations < 0.8 * 256 * 64
+    assert counts.field_evaluations < 0.8 * 256 * 64
 
 
 def test_skipping_renders_the_sphere_within_a_tenth_of_a_db_with_a_third_of_the_work():
@@ -209,16 +246,17 @@ def test_skipping_renders_the_sphere_within_a_tenth_of_a_db_with_a_third_of_the_
     rays = _camera_rays(size=40)
     grid = empty_grid((-1.5,) * 3, (1.5,) * 3, resolution=48, threshold=0.01, outside_occupied=False)
     grid = refresh_occupancy(grid, field, key=jax.random.key(0))
-    dense_rgb, dense_depth, _ = render_rays(model, rays, 512)
-    stats = RenderStats()
-    rgb, depth, _ = render_rays(model, rays, 512, skipping=Skipping(grid, 1e-4, 4), stats=stats)
+    dense = render_rays(model, rays, 512)
+    dense_rgb, dense_depth = dense.rgb, dense.depth
+    skipped = render_rays(model, rays, 512, skipping=Skipping(grid, 1e-4, 4))
+    rgb, depth, counts = skipped.rgb, skipped.depth, skipped.counts
     # The dense render is the reference image: the PSNR of the skipped render against it must
     # be high enough that a 0.1 dB change of any test PSNR below 40 dB is impossible.
     assert psnr(rgb.reshape(40, 40, 3), dense_rgb.reshape(40, 40, 3)) > 60.0
     hit = np.isfinite(dense_depth) & (np.asarray(dense_depth) < 5.5)
     assert hit.sum() > 100
     np.testing.assert_allclose(depth[hit], dense_depth[hit], atol=2e-3)
-    assert stats.padded_evaluations * 3 <= stats.dense_evaluations
+    assert counts.padded_evaluations * 3 <= counts.dense_evaluations
 
 
 def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost(tiny_config, tiny_scene):
@@ -312,18 +350,18 @@ def _calibrate_foggy_sphere(tolerance_db):
     model = _sphere_model(foggy, samples=48)
     rays = _camera_rays(size=24)
     # The truth has no fog: the dense render of the foggy model is off by the fog's colour.
-    target = render_rays(_sphere_model(_sphere(), samples=48), rays, 576)[0]
+    target = render_rays(_sphere_model(_sphere(), samples=48), rays, 576).rgb
     grid = empty_grid((-1.5,) * 3, (1.5,) * 3, resolution=32, threshold=1e-3, outside_occupied=False)
     grid = refresh_occupancy(grid, foggy, key=jax.random.key(0))
     skipping = Skipping(grid, 1e-4, 4)
     chosen, choice = mx.calibrate_threshold(
         model, grid, skipping, rays, target, tolerance_db=tolerance_db, doublings=16, chunk=576
     )
-    dense = render_rays(model, rays, 576)[0]
+    dense = render_rays(model, rays, 576).rgb
 
     def bound(threshold):
-        candidate = dataclasses.replace(grid, threshold=threshold)
-        rgb = render_rays(model, rays, 576, skipping=dataclasses.replace(skipping, grid=candidate))[0]
+        candidate = grid.with_threshold(threshold)
+        rgb = render_rays(model, rays, 576, skipping=dataclasses.replace(skipping, grid=candidate)).rgb
         return psnr_drop_bound(dense, rgb, target)
 
     return chosen, choice, bound
@@ -331,7 +369,7 @@ def _calibrate_foggy_sphere(tolerance_db):
 
 def test_calibration_keeps_the_fog_for_a_tight_tolerance_and_picks_the_largest_threshold():
     chosen, choice, bound = _calibrate_foggy_sphere(tolerance_db=0.5)
-    assert choice.within_tolerance and chosen.threshold == choice.threshold
+    assert choice.within_tolerance and float(chosen.threshold) == pytest.approx(choice.threshold, rel=1e-7)
     # Removing the fog moves the image all the way to the truth: a 6 dB bound. So the chosen
     # threshold stays below the fog's density, and the next candidate up is above it.
     assert 0.01 < choice.threshold < 0.02 <= 2 * choice.threshold

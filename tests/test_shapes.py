@@ -158,3 +158,34 @@ def test_correct_calls_pass_eagerly_and_under_jit():
     outputs = FieldOutputs(density=_ones(5), rgb=_ones(5, 3), beta=None, ray_depth=None)
     level = eqx.filter_jit(VolumeRenderer())(outputs, _edges(6), make_ray())
     assert level.rgb.shape == (3,) and level.depth.shape == ()
+
+
+def test_one_switch_turns_the_checks_off_and_on():
+    """`set_typecheck` (what `--no-typecheck` calls) is the only switch, and it acts at call time."""
+    import mixnerf_eqx as mx
+
+    assert mx.typecheck_enabled()
+    bad = lambda: blend_weights(_ones(5), _edges(7), jnp.float32(1.0))  # noqa: E731
+    try:
+        mx.set_typecheck(False)
+        assert not mx.typecheck_enabled()
+        # Unchecked, the call runs into the shape mismatch inside the function instead.
+        with pytest.raises(Exception) as excinfo:
+            bad()
+        assert not isinstance(excinfo.value, TypeCheckError)
+    finally:
+        mx.set_typecheck(True)
+    with pytest.raises(TypeCheckError):
+        bad()
+
+
+def test_command_lines_take_no_typecheck():
+    import mixnerf_eqx as mx
+    from mixnerf_eqx.train import parse_args
+
+    with mx._typecheck.typecheck_argument(parse_args(["--no-typecheck"])):
+        assert not mx.typecheck_enabled()
+    # The switch is restored after the command, so calling `main` from Python changes nothing.
+    assert mx.typecheck_enabled()
+    with mx._typecheck.typecheck_argument(parse_args([])):
+        assert mx.typecheck_enabled()

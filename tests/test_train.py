@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import ConfigError
+from mixnerf_eqx import ConfigError, draw_batch, fit, init_train_state, make_train_step, training_rays
 from mixnerf_eqx._checkpoint import latest_checkpoint, read_checkpoint_meta
 from mixnerf_eqx._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
-from mixnerf_eqx._train import fit, make_optimizer, make_train_step, training_rays
 from mixnerf_eqx.metrics import psnr
 
 
@@ -58,27 +57,46 @@ def test_sample_space_annealing_matches_regnerf_formula():
 
 
 def test_train_step_traces_once(tiny_config, tiny_scene):
-    config = tiny_config
-    model = mx.build_model(config, key=jax.random.key(0))
-    optimizer = make_optimizer(config)
-    opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
-    step_fn = make_train_step(config, optimizer, max_traces=1)
+    state = init_train_state(tiny_config, tiny_scene)
+    step_fn = make_train_step(tiny_config, max_traces=1)
     data = training_rays(tiny_scene)
-    key = jax.random.key(1)
-    for step in range(4):
-        model, opt_state, metrics = step_fn(model, opt_state, data, jnp.asarray(step, jnp.int32), key)
+    batch_size = tiny_config.train.batch_size
+    for _ in range(4):
+        state, metrics = step_fn(state, draw_batch(data, state, batch_size))
     assert np.isfinite(float(metrics.terms.total))
-    # The guard is live: a call that needs a new trace (other data shapes) is refused.
-    smaller = jax.tree_util.tree_map(lambda x: x[:, :100], data)
+    assert int(state.step) == 4
+    # The guard is live: a call that needs a new trace (another batch size) is refused.
     with pytest.raises(RuntimeError, match="traced"):
-        step_fn(model, opt_state, smaller, jnp.asarray(5, jnp.int32), key)
+        step_fn(state, draw_batch(data, state, batch_size // 2))
+
+
+def test_train_step_is_pure(tiny_config, tiny_scene):
+    """The same state and batch give the same new state and metrics, and the old state is
+    left as it was: everything a step changes comes back in its result."""
+    state = init_train_state(tiny_config, tiny_scene)
+    step_fn = make_train_step(tiny_config)
+    batch = draw_batch(training_rays(tiny_scene), state, tiny_config.train.batch_size)
+    before = [np.asarray(x).copy() for x in jax.tree_util.tree_leaves(eqx.filter(state.model, eqx.is_array))]
+    first, metrics_a = step_fn(state, batch)
+    second, metrics_b = step_fn(state, batch)
+    after = jax.tree_util.tree_leaves(eqx.filter(state.model, eqx.is_array))
+    for a, b in zip(before, after, strict=True):
+        np.testing.assert_array_equal(a, np.asarray(b))
+    leaves = [jax.tree_util.tree_leaves(eqx.filter(s, eqx.is_array)) for s in (first, second)]
+    for a, b in zip(*leaves, strict=True):
+        np.testing.assert_array_equal(
+            np.asarray(jax.random.key_data(a) if a.dtype.name.startswith("key") else a),
+            np.asarray(jax.random.key_data(b) if b.dtype.name.startswith("key") else b),
+        )
+    assert float(metrics_a.terms.total) == float(metrics_b.terms.total)
+    assert int(first.step) == int(state.step) + 1
 
 
 def _count_equations(config, tiny_scene):
     model = mx.build_model(config, key=jax.random.key(0))
     data = training_rays(tiny_scene)
     rays, target = data.rays[0, :64], data.rgb[0, :64]
-    weights = config.loss.weights()
+    weights = mx.LossWeights.from_config(config.loss, config.method)
 
     def loss(model):
         return mx.loss_fn(model, rays, target, jnp.float32(1.0), weights, key=jax.random.key(0))[0]
@@ -96,10 +114,7 @@ def test_zero_weight_terms_are_not_computed(tiny_config, tiny_scene):
         dataclasses.replace(tiny_config, loss=dataclasses.replace(tiny_config.loss, lambda_regen=0.0)),
         tiny_scene,
     )
-    baseline_loss = dataclasses.replace(
-        tiny_config.loss, lambda_colour_start=0.0, lambda_colour_end=0.0, lambda_depth=0.0, lambda_regen=0.0
-    )
-    baseline = _count_equations(dataclasses.replace(tiny_config, loss=baseline_loss), tiny_scene)
+    baseline = _count_equations(dataclasses.replace(tiny_config, method="mipnerf"), tiny_scene)
     assert baseline < no_depth < full
     assert baseline < no_regen < full
 
@@ -182,14 +197,10 @@ def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, m
     def crash(*args, **kwargs):
         raise OSError("disk full")
 
+    state = eqx.tree_at(lambda s: s.step, init_train_state(config, tiny_scene), jnp.asarray(99, jnp.int32))
     monkeypatch.setattr(eqx, "tree_serialise_leaves", crash)
-    from mixnerf_eqx._checkpoint import save_checkpoint
-
-    model = mx.build_model(config, key=jax.random.key(0))
-    with pytest.raises(OSError):
-        save_checkpoint(
-            config.train.run_dir, model=model, opt_state=(), step=99, key=jax.random.key(0), config={}
-        )
+    with pytest.raises(mx.CheckpointError, match="disk full"):
+        mx.save_checkpoint(config.train.run_dir, state, config={})
     assert latest_checkpoint(config.train.run_dir) == before
 
 
@@ -197,13 +208,11 @@ def test_schedules_count_steps_from_one(tiny_config, tiny_scene):
     """The first update uses every schedule at step 1 (the released code): Adam's first step
     moves each parameter by the learning rate of step 1, and lambda_C is the ramp's value at 1."""
     config = tiny_config
-    model = mx.build_model(config, key=jax.random.key(0))
-    optimizer = make_optimizer(config)
-    opt_state = optimizer.init(eqx.filter(model, eqx.is_array))
-    step_fn = make_train_step(config, optimizer)
-    new_model, _, metrics = step_fn(
-        model, opt_state, training_rays(tiny_scene), jnp.asarray(0, jnp.int32), jax.random.key(1)
-    )
+    state = init_train_state(config, tiny_scene)
+    model = state.model
+    batch = draw_batch(training_rays(tiny_scene), state, config.train.batch_size)
+    new_state, metrics = make_train_step(config)(state, batch)
+    new_model = new_state.model
     optim = config.optim
     lr_1 = learning_rate_schedule(optim.lr_init, optim.lr_final, config.train.max_steps, optim.warmup_steps)(
         1

@@ -1,4 +1,5 @@
 from .base import AbstractSampler as AbstractSampler
 from .hierarchical import HierarchicalSampler as HierarchicalSampler
+from .hierarchical import blur_weights as blur_weights
 from .hierarchical import sample_piecewise_constant as sample_piecewise_constant
 from .stratified import StratifiedSampler as StratifiedSampler

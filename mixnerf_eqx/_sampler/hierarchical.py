@@ -54,7 +54,7 @@ def sample_piecewise_constant(
     return bins[lower] + fraction * (bins[upper] - bins[lower])
 
 
-def blur_weights(weights: Float[Array, "n"], padding: float) -> Float[Array, "n"]:
+def blur_weights(weights: Float[Array, "num_samples"], padding: float) -> Float[Array, "num_samples"]:
     """mip-NeRF's 2-tap max followed by a 2-tap average, plus a constant padding."""
     padded = jnp.concatenate([weights[:1], weights, weights[-1:]])
     maxed = jnp.maximum(padded[:-1], padded[1:])

@@ -19,6 +19,7 @@ from ._registry import ENV_DATA_DIR as ENV_DATA_DIR
 from ._registry import data_root as data_root
 from ._registry import find_scene as find_scene
 from ._registry import load_dataset as load_dataset
+from ._splits import evenly_spaced as evenly_spaced
 from .blender import load_blender as load_blender
 from .dtu import load_dtu as load_dtu
 from .llff import load_llff as load_llff

@@ -99,8 +99,8 @@ def downscale_mask(
 
 
 def downscale_intrinsics(
-    intrinsics: Float[np.ndarray, "*views 3 3"], height: int, width: int, factor: int
-) -> Float[np.ndarray, "*views 3 3"]:
+    intrinsics: Float[np.ndarray, "*batch 3 3"], height: int, width: int, factor: int
+) -> Float[np.ndarray, "*batch 3 3"]:
     """The pinhole matrices `K` (OpenCV pixel convention) of `height x width` images after
     `downscale_image`: the principal point moves with the crop, then rows 0 and 1 are
     divided by `factor`. Returned in float64."""

@@ -152,8 +152,8 @@ def area_downsample(
 
 
 def composite_on_white(
-    image: Float[np.ndarray, "height width channels"],
-) -> Float[np.ndarray, "height width 3"]:
+    image: Float[np.ndarray, "height width _channels"],
+) -> Float[np.ndarray, "height width channels"]:
     """RGB of a straight-alpha RGBA image composited on white (RGB images pass through)."""
     if image.shape[-1] == 3:
         return image

@@ -102,39 +102,30 @@ def _mask_roots(config: DataConfig, root: Path) -> list[Path]:
     return [root / layout for layout in _MASK_LAYOUTS if (root / layout).is_dir()]
 
 
-def load_dataset(config: DataConfig) -> Dataset:
-    """Loads the dataset that `config` names.
-
-    **Arguments:**
-
-    - `config`: the data section of a run's config.
-
-    **Returns:**
-
-    The `Dataset`, with the protocol's training and test views. Every problem with the files
-    is a `DatasetError` (a `ValueError`) whose message names the file and what to do.
-    """
-    if config.image_downscale < 1:
-        raise DatasetError(f"data.image_downscale must be at least 1, got {config.image_downscale}.")
-    if config.dataset == "builtin":
-        if config.scene != "builtin":
-            raise DatasetError(
-                f'unknown scene {config.scene!r} for data.dataset = "builtin" (whose only scene is '
-                f'"builtin"); for a scene on disk set data.dataset to one of {", ".join(DATASETS[1:])}.'
-            )
-        if config.image_downscale != 1:
-            raise DatasetError(
-                f"data.image_downscale = {config.image_downscale} applies to scenes on disk; the built-in "
-                f"scene is rendered at data.resolution (now {config.resolution}): set data.resolution "
-                "instead and leave data.image_downscale at 1."
-            )
-        from .procedural import make_builtin_scene
-
-        return make_builtin_scene(
-            resolution=config.resolution,
-            num_train_views=config.num_train_views,
-            num_test_views=config.num_test_views,
+def _load_builtin(config: DataConfig) -> Dataset:
+    """The procedural scene, after checking that `config` asks for nothing it cannot do."""
+    if config.scene != "builtin":
+        raise DatasetError(
+            f'unknown scene {config.scene!r} for data.dataset = "builtin" (whose only scene is '
+            f'"builtin"); for a scene on disk set data.dataset to one of {", ".join(DATASETS[1:])}.'
         )
+    if config.image_downscale != 1:
+        raise DatasetError(
+            f"data.image_downscale = {config.image_downscale} applies to scenes on disk; the built-in "
+            f"scene is rendered at data.resolution (now {config.resolution}): set data.resolution "
+            "instead and leave data.image_downscale at 1."
+        )
+    from .procedural import make_builtin_scene
+
+    return make_builtin_scene(
+        resolution=config.resolution,
+        num_train_views=config.num_train_views,
+        num_test_views=config.num_test_views,
+    )
+
+
+def _check_scene_config(config: DataConfig) -> None:
+    """Checks the settings of a scene on disk that no format's loader checks first."""
     if config.dataset not in DATASETS:
         raise DatasetError(f"unknown dataset format {config.dataset!r}; choose one of {', '.join(DATASETS)}.")
     # Checked here, not left to blender.split_ids: with type checking on, an unknown protocol
@@ -152,17 +143,42 @@ def load_dataset(config: DataConfig) -> Dataset:
         raise DatasetError(f"data.num_train_views must be at least 1, got {config.num_train_views}.")
     if config.far > 0 and not 0 <= config.near < config.far:
         raise DatasetError(f"need 0 <= data.near < data.far, got near={config.near}, far={config.far}.")
-    bounds = (config.near, config.far) if config.far > 0 else None
 
+
+def _scene_dir(config: DataConfig) -> Path:
+    """The scene's folder: an absolute transforms.json path as given, else found under the root."""
     if config.dataset == "transforms" and Path(config.scene).expanduser().is_absolute():
         scene_dir = Path(config.scene).expanduser()
         if not scene_dir.is_dir():
             raise DatasetError(
                 f"transforms.json scene not found: {scene_dir} is not a folder. Fix data.scene."
             )
-    else:
-        scene_dir = find_scene(data_root(config), config.dataset, config.scene)
+        return scene_dir
+    return find_scene(data_root(config), config.dataset, config.scene)
 
+
+def load_dataset(config: DataConfig) -> Dataset:
+    """Loads the dataset that `config` names.
+
+    **Arguments:**
+
+    - `config`: the data section of a run's config.
+
+    **Returns:**
+
+    The `Dataset`, with the protocol's training and test views. Every problem with the files
+    is a `DatasetError` (a `ValueError`) whose message names the file and what to do.
+    """
+    if config.image_downscale < 1:
+        raise DatasetError(f"data.image_downscale must be at least 1, got {config.image_downscale}.")
+    if config.dataset == "builtin":
+        return _load_builtin(config)
+    _check_scene_config(config)
+    bounds = (config.near, config.far) if config.far > 0 else None
+    scene_dir = _scene_dir(config)
+
+    # The format loaders are called from here, not from a helper: the stack levels of their
+    # warnings count on it.
     if config.dataset == "blender":
         dataset = blender.load_blender(
             scene_dir,

@@ -172,6 +172,75 @@ def _read_mask(path: Path, height: int, width: int) -> np.ndarray:
     return np.all(image[::step, ::step, :3] == 255, axis=-1)
 
 
+def _scan_images(scan_dir: Path) -> list[Path]:
+    """The image files of a scan, in view order; all of the protocol's views must be there."""
+    image_dir = scan_dir / "image"
+    if not image_dir.is_dir():
+        raise DatasetError(f"DTU image folder not found: {image_dir} is not a folder. {_ADVICE}")
+    files = list_images(image_dir)
+    if len(files) < NUM_VIEWS:
+        raise DatasetError(
+            f"{image_dir}: holds {len(files)} images; the DTU protocol needs the {NUM_VIEWS} views of a "
+            "scan (000000.png to 000048.png). Restore the missing images."
+        )
+    return files
+
+
+def _check_principal_points(
+    intrinsics: np.ndarray, ids: Sequence[int], files: Sequence[Path], height: int, width: int, source: Path
+) -> None:
+    """Every view's principal point must lie inside its `width x height` image."""
+    for view, matrix in zip(ids, intrinsics, strict=True):
+        cx, cy = matrix[0, 2], matrix[1, 2]
+        if not (0 < cx < width and 0 < cy < height):
+            raise DatasetError(
+                f"{source}: world_mat_{view} puts the principal point at ({cx:.1f}, {cy:.1f}), "
+                f"outside the {width}x{height} image {files[view].name}: the cameras belong to images "
+                "of another size. Use the cameras.npz that came with these images."
+            )
+
+
+def _load_views(
+    files: Sequence[Path],
+    ids: list[int],
+    masks: list[Path] | None,
+    intrinsics: np.ndarray,
+    camtoworlds: np.ndarray,
+    camera_path: Path,
+    *,
+    full_size: tuple[int, int],
+    factor: int,
+    downscale: int,
+) -> Views:
+    """The views `ids` of a scan (see `load_dtu`), with their masks when `masks` names them."""
+    paths = [files[i] for i in ids]
+    raw = read_images(paths)
+    height, width = check_same_size(raw, paths)
+    scale = factor if (width, height) == tuple(full_size) else 1
+    images = np.stack([area_downsample(image, scale)[..., :3] for image in raw])
+    k = intrinsics[ids].copy()
+    # Pixel coordinates shrink with the image; the camera does not change.
+    k[:, :2, :] /= scale
+    height, width = images.shape[1:3]
+    check_factor(downscale, height, width, paths[0])
+    _check_principal_points(k, ids, files, height, width, camera_path)
+    mask_stack = None if masks is None else np.stack([_read_mask(p, height, width) for p in masks])
+    if downscale > 1:
+        images = np.stack([downscale_image(image, downscale) for image in images])
+        k = downscale_intrinsics(k, height, width, downscale)
+        if mask_stack is not None:
+            mask_stack = np.stack([downscale_mask(mask, downscale) for mask in mask_stack])
+    return Views(
+        images=images,
+        camtoworlds=camtoworlds[ids].astype(np.float32),
+        focal=float(np.mean(k[:, 0, 0])),
+        ids=tuple(ids),
+        intrinsics=k.astype(np.float32),
+        masks=mask_stack,
+        origin_plane_z=ORIGIN_PLANE_Z,
+    )
+
+
 def load_dtu(
     scan_dir: Path,
     *,
@@ -206,55 +275,26 @@ def load_dtu(
     per-view intrinsics, rays starting on the average camera's plane, near 0.5, far 3.5 and
     no background colour.
     """
-    image_dir = scan_dir / "image"
-    if not image_dir.is_dir():
-        raise DatasetError(f"DTU image folder not found: {image_dir} is not a folder. {_ADVICE}")
-    files = list_images(image_dir)
-    if len(files) < NUM_VIEWS:
-        raise DatasetError(
-            f"{image_dir}: holds {len(files)} images; the DTU protocol needs the {NUM_VIEWS} views of a "
-            "scan (000000.png to 000048.png). Restore the missing images."
-        )
+    files = _scan_images(scan_dir)
     camera_path = scan_dir / "cameras.npz"
     intrinsics, camtoworlds = dtu_cameras(_read_cameras(camera_path, len(files)), camera_path)
     train_ids, test_ids = protocol_ids(num_train_views)
     test_ids = subsample_test_ids(test_ids, max_test_views)
 
     def views(ids: list[int], masks: list[Path] | None) -> Views:
-        paths = [files[i] for i in ids]
-        raw = read_images(paths)
-        height, width = check_same_size(raw, paths)
-        scale = factor if (width, height) == tuple(full_size) else 1
-        images = np.stack([area_downsample(image, scale)[..., :3] for image in raw])
-        k = intrinsics[ids].copy()
-        # Pixel coordinates shrink with the image; the camera does not change.
-        k[:, :2, :] /= scale
-        height, width = images.shape[1:3]
-        check_factor(downscale, height, width, paths[0])
-        for view, matrix in zip(ids, k, strict=True):
-            cx, cy = matrix[0, 2], matrix[1, 2]
-            if not (0 < cx < width and 0 < cy < height):
-                raise DatasetError(
-                    f"{camera_path}: world_mat_{view} puts the principal point at ({cx:.1f}, {cy:.1f}), "
-                    f"outside the {width}x{height} image {files[view].name}: the cameras belong to images "
-                    "of another size. Use the cameras.npz that came with these images."
-                )
-        mask_stack = None if masks is None else np.stack([_read_mask(p, height, width) for p in masks])
-        if downscale > 1:
-            images = np.stack([downscale_image(image, downscale) for image in images])
-            k = downscale_intrinsics(k, height, width, downscale)
-            if mask_stack is not None:
-                mask_stack = np.stack([downscale_mask(mask, downscale) for mask in mask_stack])
-        return Views(
-            images=images,
-            camtoworlds=camtoworlds[ids].astype(np.float32),
-            focal=float(np.mean(k[:, 0, 0])),
-            ids=tuple(ids),
-            intrinsics=k.astype(np.float32),
-            masks=mask_stack,
-            origin_plane_z=ORIGIN_PLANE_Z,
+        return _load_views(
+            files,
+            ids,
+            masks,
+            intrinsics,
+            camtoworlds,
+            camera_path,
+            full_size=full_size,
+            factor=factor,
+            downscale=downscale,
         )
 
+    # Called here, not in a helper: the stack level of its warning counts on it.
     mask_paths = _mask_paths(mask_roots, scan_dir.name, test_ids, masks_required)
     return Dataset(
         name=scan_dir.name,

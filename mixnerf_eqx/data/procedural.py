@@ -298,12 +298,12 @@ def _albedo(points: np.ndarray, normals: np.ndarray, shape_ids: np.ndarray) -> n
 
 
 def shade(
-    albedo: Float[np.ndarray, "*batch 3"],
+    albedo: Float[np.ndarray, "*batch channels"],
     normals: Float[np.ndarray, "*batch 3"],
     viewdirs: Float[np.ndarray, "*batch 3"],
     visibility: Float[np.ndarray, "*batch"],
     specular_strength: float = SPECULAR,
-) -> Float[np.ndarray, "*batch 3"]:
+) -> Float[np.ndarray, "*batch channels"]:
     """Ambient + Lambertian + Blinn-Phong shading from the scene's directional light.
 
     **Arguments:**

@@ -132,6 +132,59 @@ def _image_path(scene_dir: Path, file_path: str) -> Path:
     return path.with_name(path.name + ".png")
 
 
+def _poses(frames: list[dict], path: Path) -> np.ndarray:
+    """The frames' camera-to-world matrices, stacked."""
+    return np.stack(
+        [
+            parse_transform_matrix(f["transform_matrix"], f"{path}: the transform_matrix of {f['file_path']}")
+            for f in frames
+        ]
+    )
+
+
+def _read_frame_images(
+    scene_dir: Path, frames: list[dict], ids: list[int]
+) -> dict[int, tuple[Path, np.ndarray]]:
+    """The path and decoded image of each frame in `ids`; all images must have one size."""
+    paths = {i: _image_path(scene_dir, frames[i]["file_path"]) for i in ids}
+    decoded = read_images([paths[i] for i in ids])
+    check_same_size(decoded, [paths[i] for i in ids])
+    return {i: (paths[i], image) for i, image in zip(ids, decoded, strict=True)}
+
+
+def _load_views(
+    ids: list[int],
+    frames: list[dict],
+    meta: dict,
+    path: Path,
+    raw_images: dict[int, tuple[Path, np.ndarray]],
+    poses: np.ndarray,
+    *,
+    has_alpha: bool,
+    downscale: int,
+) -> Views:
+    """The views `ids`, composited on white when any image of the scene has alpha."""
+    images, intrinsics = [], []
+    for i in ids:
+        image_path, image = raw_images[i]
+        height, width = image.shape[:2]
+        check_factor(downscale, height, width, image_path)
+        k = _frame_intrinsics(frames[i], meta, width, height, path, image_path)
+        if downscale > 1:
+            k = downscale_intrinsics(k, height, width, downscale)
+        pixels = downscale_image(image, downscale)
+        images.append(composite_on_white(pixels) if has_alpha else pixels[..., :3])
+        intrinsics.append(k)
+    intrinsics = np.stack(intrinsics)
+    return Views(
+        images=np.stack(images),
+        camtoworlds=poses[ids].astype(np.float32),
+        focal=float(np.mean(intrinsics[:, 0, 0])),
+        ids=tuple(ids),
+        intrinsics=intrinsics.astype(np.float32),
+    )
+
+
 def load_transforms(
     scene_dir: Path,
     *,
@@ -159,12 +212,7 @@ def load_transforms(
     path = scene_dir / "transforms.json"
     meta = read_json(path, "transforms.json", _ADVICE)
     frames = _frames(meta, path)
-    poses = np.stack(
-        [
-            parse_transform_matrix(f["transform_matrix"], f"{path}: the transform_matrix of {f['file_path']}")
-            for f in frames
-        ]
-    )
+    poses = _poses(frames, path)
     train_ids, test_ids = holdout_split(len(frames), HOLDOUT_EVERY, num_train_views, path)
     test_ids = subsample_test_ids(test_ids, max_test_views)
     near, far = default_bounds(poses) if bounds is None else bounds
@@ -173,33 +221,12 @@ def load_transforms(
             f"{path}: sampling bounds near={near:g}, far={far:g} are unusable (cameras at the origin?); "
             "set data.near and data.far."
         )
-
-    ids = train_ids + test_ids
-    paths = {i: _image_path(scene_dir, frames[i]["file_path"]) for i in ids}
-    decoded = read_images([paths[i] for i in ids])
-    check_same_size(decoded, [paths[i] for i in ids])
-    raw_images = dict(zip(ids, decoded, strict=True))
-    has_alpha = any(image.shape[-1] == 4 for image in raw_images.values())
+    raw_images = _read_frame_images(scene_dir, frames, train_ids + test_ids)
+    has_alpha = any(image.shape[-1] == 4 for _, image in raw_images.values())
 
     def views(ids: list[int]) -> Views:
-        images, intrinsics = [], []
-        for i in ids:
-            image_path, image = paths[i], raw_images[i]
-            height, width = image.shape[:2]
-            check_factor(downscale, height, width, image_path)
-            k = _frame_intrinsics(frames[i], meta, width, height, path, image_path)
-            if downscale > 1:
-                k = downscale_intrinsics(k, height, width, downscale)
-            pixels = downscale_image(image, downscale)
-            images.append(composite_on_white(pixels) if has_alpha else pixels[..., :3])
-            intrinsics.append(k)
-        intrinsics = np.stack(intrinsics)
-        return Views(
-            images=np.stack(images),
-            camtoworlds=poses[ids].astype(np.float32),
-            focal=float(np.mean(intrinsics[:, 0, 0])),
-            ids=tuple(ids),
-            intrinsics=intrinsics.astype(np.float32),
+        return _load_views(
+            ids, frames, meta, path, raw_images, poses, has_alpha=has_alpha, downscale=downscale
         )
 
     return Dataset(

@@ -8,7 +8,7 @@ def mse_to_psnr(mse: float) -> float:
 
 
 def psnr(
-    prediction: Float[np.ndarray, "height width 3"], target: Float[np.ndarray, "height width 3"]
+    prediction: Float[np.ndarray, "height width channels"], target: Float[np.ndarray, "height width channels"]
 ) -> float:
     """Peak signal-to-noise ratio (data range 1)."""
     difference = np.asarray(prediction, np.float64) - np.asarray(target, np.float64)
@@ -23,8 +23,8 @@ def _gaussian_filter_valid(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 
 def ssim(
-    prediction: Float[np.ndarray, "height width 3"],
-    target: Float[np.ndarray, "height width 3"],
+    prediction: Float[np.ndarray, "height width channels"],
+    target: Float[np.ndarray, "height width channels"],
     *,
     window: int = 11,
     sigma: float = 1.5,

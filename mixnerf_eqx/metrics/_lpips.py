@@ -80,15 +80,17 @@ class _AlexNetLPIPS(eqx.Module):
     """AlexNet's convolutions and LPIPS's linear heads, one entry per stage."""
 
     # Each stage has its own sizes: underscored names document them without binding them.
-    kernels: tuple[Float[Array, "_kernel _kernel _in_channels _out_channels"], ...]
-    biases: tuple[Float[Array, " _out_channels"], ...]
-    heads: tuple[Float[Array, " _out_channels"], ...]
+    kernels: tuple[Float[Array, "_kernel _kernel _in_features _out_features"], ...]
+    biases: tuple[Float[Array, " _out_features"], ...]
+    heads: tuple[Float[Array, " _out_features"], ...]
 
     def __check_init__(self):
         if not len(self.kernels) == len(self.biases) == len(self.heads) == len(_STAGES):
             raise ValueError(f"expected {len(_STAGES)} stages")
 
-    def features(self, images: Float[Array, "pair height width 3"]) -> list[Float[Array, "pair _ _ _"]]:
+    def features(
+        self, images: Float[Array, "batch height width channels"]
+    ) -> list[Float[Array, "batch _ _ _"]]:
         """The ReLU output of each stage for images scaled to [-1, 1]."""
         x = (images - _SHIFT) / _SCALE
         outputs = []
@@ -118,7 +120,7 @@ class _AlexNetLPIPS(eqx.Module):
         return outputs
 
     def __call__(
-        self, prediction: Float[Array, "height width 3"], target: Float[Array, "height width 3"]
+        self, prediction: Float[Array, "height width channels"], target: Float[Array, "height width channels"]
     ) -> Float[Array, ""]:
         """The LPIPS distance of two images in [-1, 1]."""
         total = jnp.zeros((), jnp.float32)
@@ -132,7 +134,7 @@ class _AlexNetLPIPS(eqx.Module):
         return total
 
 
-def _unit_channels(features: Float[Array, "*batch channels"]) -> Float[Array, "*batch channels"]:
+def _unit_channels(features: Float[Array, "*batch features"]) -> Float[Array, "*batch features"]:
     norm = jnp.sqrt(jnp.sum(features**2, axis=-1, keepdims=True))
     return features / (norm + _NORM_EPSILON)
 
@@ -188,7 +190,7 @@ MIN_LPIPS_SIDE = _smallest_side()
 
 
 def lpips(
-    prediction: Float[np.ndarray, "height width 3"], target: Float[np.ndarray, "height width 3"]
+    prediction: Float[np.ndarray, "height width channels"], target: Float[np.ndarray, "height width channels"]
 ) -> float:
     """LPIPS distance with the AlexNet backbone (lower is better; 0 for identical images).
 

@@ -22,8 +22,8 @@ def _check_mask(image: np.ndarray, mask: np.ndarray) -> None:
 
 
 def masked_psnr(
-    prediction: Float[np.ndarray, "height width 3"],
-    target: Float[np.ndarray, "height width 3"],
+    prediction: Float[np.ndarray, "height width channels"],
+    target: Float[np.ndarray, "height width channels"],
     mask: Bool[np.ndarray, "height width"],
 ) -> float:
     """PSNR (data range 1) from the mean squared error over the channel values of the pixels
@@ -41,8 +41,8 @@ def masked_psnr(
 
 
 def composite_outside_mask(
-    image: Float[np.ndarray, "height width 3"], mask: Bool[np.ndarray, "height width"]
-) -> Float[np.ndarray, "height width 3"]:
+    image: Float[np.ndarray, "height width channels"], mask: Bool[np.ndarray, "height width"]
+) -> Float[np.ndarray, "height width channels"]:
     """The image with every pixel outside the object `mask` set to white (1.0), as SSIM and
     LPIPS see DTU's images. Returns a new array of the image's dtype.
     """

@@ -1,13 +1,14 @@
-"""Shared pieces of `error_vs_time.py` and `sample_count.py` (not a benchmark itself).
+"""The benchmarks' shared harness (not a benchmark itself). It uses the public API only.
 
 - Scene and variant specs from the command line, and the configs they resolve to.
 - Cheap evaluation views: a fixed subset of the test views, optionally area-downsampled.
-- `TrainingRun`: one model trained by the library's jitted step, compiled ahead of time with
-  `.lower(...).compile()` so that compilation is timed apart from the steps, each step timed
-  to completion.
-- The schedule rule for short runs, output paths, machine description and table printing.
+- `TrainingRun`: one run of the library's `TrainState` and jitted step, compiled ahead of time
+  with `.lower(...).compile()` so that compilation is timed apart from the steps, each step
+  timed to completion.
+- The schedule rule for short runs, output paths, machine description, table printing and
+  result writing (every result file records the command that made it).
 
-Spec syntax (both scripts):
+Spec syntax (`error_vs_time.py`, `sample_count.py`):
 
     --scene lego                               preset (lego: configs/blender4.toml, fern: configs/llff3.toml)
     --scene NAME=CONFIG[:key=value,...]        a scene of your own: CONFIG's [data] section and settings
@@ -15,7 +16,7 @@ Spec syntax (both scripts):
     --variant NAME=FILE.toml[:key=value,...]   a config file used for every scene it fits (see below)
 
 Override lists are comma-separated `section.key=value` items, parsed like the overrides of
-`load_config`; the macros `@baseline` (the three NLL weights at zero: the mip-NeRF baseline)
+`load_config`; the macros `@baseline` (`method = "mipnerf"`: the mip-NeRF baseline)
 and `@fast` (32 + 32 samples, bfloat16 matrix products) expand in place.
 
 A variant that names a file takes everything but the data from that file and the `[data]`
@@ -37,7 +38,9 @@ import json
 import math
 import os
 import platform
+import shlex
 import statistics
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -45,21 +48,10 @@ from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
-import jaxtyping
 import numpy as np
 
-from mixnerf_eqx import Config, build_model, load_config
-from mixnerf_eqx._config import init_key
-from mixnerf_eqx._occupancy import refresh_occupancy, update_occupancy
-from mixnerf_eqx._skipping import Skipping
-from mixnerf_eqx._train import (
-    make_occupancy_grid,
-    make_optimizer,
-    make_skipping,
-    make_train_step,
-    training_rays,
-)
+import mixnerf_eqx as mx
+from mixnerf_eqx import Config, load_config
 from mixnerf_eqx.data import Dataset, Views, load_dataset
 
 REPO = Path(__file__).resolve().parent.parent
@@ -71,12 +63,7 @@ SCENE_PRESETS = {
 }
 
 MACROS = {
-    "@baseline": (
-        "loss.lambda_colour_start=0.0",
-        "loss.lambda_colour_end=0.0",
-        "loss.lambda_depth=0.0",
-        "loss.lambda_regen=0.0",
-    ),
+    "@baseline": ("method=mipnerf",),
     "@fast": (
         "model.num_coarse_samples=32",
         "model.num_fine_samples=32",
@@ -236,7 +223,7 @@ def downscale_views(views: Views, factor: int) -> tuple[Views, int]:
     """Area-downsamples the views by `factor` (or the largest factor <= it that divides both
     image sides); focal length and intrinsics are divided by it.
 
-    Pixel centres sit at `col + 0.5` (see `mixnerf_eqx._rays`), so a box average over
+    Pixel centres sit at `col + 0.5` (see `mixnerf_eqx.camera_rays`), so a box average over
     `f x f` blocks is exactly the camera with every intrinsic divided by `f`; NDC rays stay
     in the same NDC space, because it depends on focal / width and focal / height only.
     Object masks are kept by majority; true depths are dropped (not reported here).
@@ -308,113 +295,96 @@ class DatasetCache:
 
 @contextlib.contextmanager
 def typechecking(enabled: bool) -> Iterator[None]:
-    """Runtime shape checks on or off (they act while JAX traces), as `fit` sets them."""
-    previous = jaxtyping.config.jaxtyping_disable
-    jaxtyping.config.update("jaxtyping_disable", not enabled)
+    """Runtime shape checks on or off for a block (they act while JAX traces)."""
+    previous = mx.typecheck_enabled()
+    mx.set_typecheck(enabled)
     try:
         yield
     finally:
-        jaxtyping.config.update("jaxtyping_disable", previous)
-
-
-class TrainingDiverged(RuntimeError):
-    pass
-
-
-_update_occupancy = eqx.filter_jit(update_occupancy)
-_refresh_occupancy = eqx.filter_jit(refresh_occupancy)
+        mx.set_typecheck(previous)
 
 
 class TrainingRun:
-    """A model, its optimiser state and its compiled training step (the library's own).
+    """A `TrainState` and the library's compiled step, timed step by step.
 
-    The model and key come from the config's seed exactly as in `fit`. `compile()` lowers
-    and compiles the step ahead of time without running it (the model is not changed);
+    The state comes from `mx.init_train_state` (the config's seed, as in `fit`). `compile()`
+    lowers and compiles the batch draw and the step ahead of time without running them;
     `advance()` runs one step to completion and returns its wall time.
 
-    With `occupancy.enabled`, the occupancy grid is kept up to date as `fit` keeps it (a
-    share of the cells every `occupancy.update_every` steps, compiled ahead too) and those
-    updates count as training time; `skipping()` gives the renderer options for evaluation,
-    with the grid refreshed in every cell as `fit` does before its final evaluation.
+    With `occupancy.enabled`, the grid is kept up to date as `fit` keeps it (`mx.update_grid`
+    every `occupancy.update_every` steps, compiled ahead too) and those updates count as
+    training time; `skipping()` gives the rendering options for evaluation, with the grid
+    refreshed in every cell as `fit` does before its final evaluation.
     """
 
     def __init__(self, config: Config, dataset: Dataset):
         self.config = config
-        model_key, self.key = jax.random.split(init_key(config))
-        self.model = build_model(
-            config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background
-        )
-        optimizer = make_optimizer(config)
-        self.opt_state = optimizer.init(eqx.filter(self.model, eqx.is_array))
-        self.data = training_rays(dataset)
-        self._step_fn = make_train_step(config, optimizer)
+        self.dataset = dataset
+        self.state = mx.init_train_state(config, dataset)
+        self.data = mx.training_rays(dataset)
+        self._step_fn = mx.make_train_step(config)
+        self._draw = eqx.filter_jit(mx.draw_batch)
         self._compiled = None
-        self.grid = make_occupancy_grid(config, dataset) if config.occupancy.enabled else None
-        self._grid_key = jax.random.fold_in(self.key, 0x0CC)  # as in fit
-        self._compiled_update = None
-        self.step = 0
         self.skipped = 0
         self._streak = 0
 
-    def _update_arguments(self, done: int) -> tuple[tuple, dict[str, Any]]:
-        occupancy = self.config.occupancy
-        return (self.grid, self.model.field), {
-            "key": jax.random.fold_in(self._grid_key, done),
-            "decay": occupancy.decay,
-            "fraction": occupancy.update_fraction,
-            "offset": jnp.asarray(done // occupancy.update_every, jnp.int32),
-        }
+    @property
+    def model(self) -> mx.MixNeRF:
+        return self.state.model
+
+    @property
+    def step(self) -> int:
+        return int(self.state.step)
 
     def compile(self) -> float:
-        """Traces, lowers and compiles the step (and grid update); returns the seconds taken."""
+        """Traces, lowers and compiles the batch draw, the step (and grid update); returns the
+        seconds taken."""
         started = time.perf_counter()
-        with typechecking(self.config.train.typecheck):
-            lowered = self._step_fn.lower(
-                self.model, self.opt_state, self.data, jnp.asarray(0, jnp.int32), self.key
-            )
-            self._compiled = lowered.compile()
-            if self.grid is not None:
-                args, kwargs = self._update_arguments(0)
-                self._compiled_update = _update_occupancy.lower(*args, **kwargs).compile()
+        batch_size = self.config.train.batch_size
+        draw = self._draw.lower(self.data, self.state, batch_size).compile()
+        # A batch to lower the step with; drawing is pure, so the run is not changed.
+        step = self._step_fn.lower(self.state, draw(self.data, self.state, batch_size)).compile()
+        update = None
+        if self.state.grid is not None:
+            update = mx.update_grid.lower(self.state, self.config.occupancy).compile()
+        self._compiled = (draw, step, update)
         return time.perf_counter() - started
 
     def advance(self) -> float:
         """One training step (and grid update when due), waited for; returns its wall time."""
         if self._compiled is None:
             raise RuntimeError("compile() first")
-        step = jnp.asarray(self.step, jnp.int32)
+        draw, step, update = self._compiled
         started = time.perf_counter()
-        model, opt_state, metrics = self._compiled(self.model, self.opt_state, self.data, step, self.key)
-        self.model, self.opt_state = model, opt_state
-        self.step += 1
-        if self._compiled_update is not None and self.step % self.config.occupancy.update_every == 0:
-            args, kwargs = self._update_arguments(self.step)
-            self.grid = self._compiled_update(*args, **kwargs)
-        jax.block_until_ready((model, opt_state, metrics, self.grid))
+        state, metrics = step(self.state, draw(self.data, self.state, self.config.train.batch_size))
+        if update is not None and (self.step + 1) % self.config.occupancy.update_every == 0:
+            state = update(state, self.config.occupancy)
+        jax.block_until_ready((state, metrics))
         seconds = time.perf_counter() - started
+        self.state = state
         if bool(metrics.skipped):
             self.skipped += 1
             self._streak += 1
             if self._streak >= self.config.train.max_nonfinite_steps:
-                raise TrainingDiverged(f"{self._streak} consecutive non-finite steps at step {self.step}")
+                raise mx.TrainingDiverged(f"{self._streak} consecutive non-finite steps at step {self.step}")
         else:
             self._streak = 0
         return seconds
 
-    def skipping(self) -> Skipping | None:
-        """Renderer options for evaluating now (`None`: dense), not counted as training."""
-        if self.grid is None:
+    def skipping(self) -> mx.Skipping | None:
+        """Rendering options for evaluating now (`None`: dense), not counted as training."""
+        if self.state.grid is None:
             return None
-        key = jax.random.fold_in(self._grid_key, self.step + 1)
-        with typechecking(self.config.train.typecheck):
-            grid = _refresh_occupancy(self.grid, self.model.field, key=key)
-        return make_skipping(self.config, grid)
+        key = jax.random.fold_in(jax.random.fold_in(self.state.key, 0x0CC), self.step + 1)
+        occupancy = dataclasses.replace(self.config.occupancy, calibrate=False)
+        grid, _ = mx.grid_for_rendering(occupancy, self.dataset, self.model, key=key, grid=self.state.grid)
+        return mx.make_skipping(self.config.occupancy, grid)
 
     def render_chunk(self, chunk: int | None = None) -> int:
         """`chunk`, or the config's: `occupancy.chunk` with skipping, else `train.render_chunk`."""
         if chunk:
             return chunk
-        return self.config.occupancy.chunk if self.grid is not None else self.config.train.render_chunk
+        return self.config.occupancy.chunk if self.state.grid is not None else self.config.train.render_chunk
 
 
 def calibrate_steps(config: Config, dataset: Dataset, budget_s: float, repeats: int) -> dict[str, Any]:
@@ -459,6 +429,12 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
+def grid_threshold(grid: mx.OccupancyGrid) -> float:
+    """A grid's density threshold (a float32 array leaf) as the shortest decimal that reads back
+    as the same float32: 0.01, not 0.009999999776482582."""
+    return float(np.format_float_positional(np.float32(grid.threshold), unique=True))
+
+
 def model_summary(config: Config) -> dict[str, Any]:
     model = config.model
     return {
@@ -466,7 +442,7 @@ def model_summary(config: Config) -> dict[str, Any]:
         "samples": [model.num_coarse_samples, model.num_fine_samples],
         "matmul_dtype": model.matmul_dtype,
         "batch_size": config.train.batch_size,
-        "baseline": config.loss.is_baseline,
+        "method": config.method,
         "occupancy": config.occupancy.enabled,
         "max_steps": config.train.max_steps,
     }
@@ -499,8 +475,45 @@ def relative_paths(value: Any) -> Any:
     return value
 
 
+def command_line() -> str:
+    """The command that is running, as a user would type it from the repository root."""
+    script = Path(sys.argv[0]).resolve()
+    shown = str(script.relative_to(REPO)) if script.is_relative_to(REPO) else script.name
+    return shlex.join(["python", shown, *sys.argv[1:]])
+
+
 def write_json(path: Path, payload: Any) -> None:
-    """Writes `payload` as JSON, with paths inside the repository relative to it."""
+    """Writes `payload` as JSON, with paths inside the repository relative to it, and the
+    command that made it (`"command"`) and the machine (`"machine"`) unless it has them."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(payload, dict):
+        payload = {"command": command_line(), "machine": machine_info(), **payload}
     path.write_text(json.dumps(relative_paths(payload), indent=2))
     print(f"written to {path}")
+
+
+def append_jsonl(path: Path, record: dict[str, Any]) -> None:
+    """Appends one record (with the command that made it) to a JSON-lines file, flushed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as handle:
+        handle.write(json.dumps(relative_paths({"command": command_line(), **record})) + "\n")
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
+def write_markdown(path: Path, text: str) -> None:
+    """Writes a markdown result with a first line that names the command that made it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"<!-- made by: {command_line()} -->\n\n{text}")
+    print(f"written to {path}")
+
+
+def save_figure(figure: Any, path: Path, dpi: int = 120) -> None:
+    """Saves a matplotlib figure as PNG with the command that made it in its metadata
+    (the `Comment` text chunk) and closes it."""
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=dpi, metadata={"Comment": f"made by: {command_line()}"})
+    plt.close(figure)
+    print(f"plot written to {path}")

@@ -1,0 +1,65 @@
+"""Ctrl-C at safe points only.
+
+A `KeyboardInterrupt` raised by Python's default handler can land anywhere: between a step's
+update and the line that keeps its result, inside JAX's dispatch, or while XLA still runs a
+computation that a dying interpreter then tears down (which can crash the process). Inside
+`deferred_interrupts()`, Ctrl-C only records the request; long loops call
+`raise_if_interrupted()` at points where stopping is safe (between training steps, between
+chunks of rays), and the `KeyboardInterrupt` is raised there. A second Ctrl-C while the first
+waits for such a point is raised at once, for a user who does not want to wait.
+"""
+
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
+
+_requested = False
+_active = 0
+
+
+def _handler(signum, frame) -> None:
+    global _requested
+    if _requested:
+        raise KeyboardInterrupt
+    _requested = True
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Within this block, Ctrl-C is raised by `raise_if_interrupted()` only.
+
+    Outside the main thread (where signals cannot be handled) it changes nothing. Blocks nest.
+    """
+    global _requested, _active
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if _active == 0:
+        _requested = False
+        signal.signal(signal.SIGINT, _handler)
+    _active += 1
+    try:
+        yield
+    finally:
+        _active -= 1
+        if _active == 0:
+            signal.signal(signal.SIGINT, previous)
+            pending, _requested = _requested, False
+            if pending:
+                # A request that arrived after the last safe point is not lost.
+                raise KeyboardInterrupt
+
+
+def interrupt_requested() -> bool:
+    """Whether Ctrl-C was pressed inside `deferred_interrupts()` and not yet raised."""
+    return _requested
+
+
+def raise_if_interrupted() -> None:
+    """Raises `KeyboardInterrupt` here if Ctrl-C was pressed since the block began."""
+    global _requested
+    if _requested:
+        _requested = False
+        raise KeyboardInterrupt

@@ -1,0 +1,350 @@
+"""What the package promises on interrupts, crashes, damaged files and bad input.
+
+`docs/reliability.md` lists each promise next to the test here that checks it.
+"""
+
+import dataclasses
+import json
+import os
+import signal
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+import mixnerf_eqx as mx
+import mixnerf_eqx._train as train_module
+from mixnerf_eqx import ConfigError
+from mixnerf_eqx._progress import Progress
+
+
+def _with(config, section, **changes):
+    return dataclasses.replace(config, **{section: dataclasses.replace(getattr(config, section), **changes)})
+
+
+def _leaves(state):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(state.model, eqx.is_array))]
+
+
+def _assert_same_model(a, b):
+    for x, y in zip(_leaves(a), _leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def _short(tiny_config, run_dir):
+    config = _with(tiny_config, "train", max_steps=10, checkpoint_every=4, eval_every=5, run_dir=str(run_dir))
+    # A small grid, updated every other step, so that interrupts can land in its update too.
+    return _with(config, "occupancy", enabled=True, resolution=8, update_every=2, calibrate=False)
+
+
+def fit_quietly(config, dataset, **kwargs):
+    return mx.fit(config, dataset=dataset, progress=False, write_renders=False, log_every=2, **kwargs)
+
+
+def _interrupting(function, calls: dict):
+    def interrupted(*args, **kwargs):
+        calls["count"] += 1
+        if calls["count"] == 1:
+            signal.raise_signal(signal.SIGINT)  # a real Ctrl-C, in the middle of this call
+        return function(*args, **kwargs)
+
+    return interrupted
+
+
+# Where a Ctrl-C lands (a name in `mixnerf_eqx._train` called there) and the step whose
+# checkpoint it leaves, one after the other in one run: while the host waits for a step, in a
+# log entry, in the grid update, inside the periodic evaluation's render, and inside a
+# checkpoint write.
+INTERRUPTS = [
+    ("make_train_step", 1),
+    ("_scalars", 2),
+    ("update_grid", 4),
+    ("_periodic_evaluation", 5),
+    ("save_checkpoint", 8),
+]
+
+
+def test_a_ctrl_c_anywhere_in_the_loop_resumes_to_the_uninterrupted_run(
+    tiny_config, tiny_scene, monkeypatch, tmp_path
+):
+    straight = fit_quietly(_short(tiny_config, tmp_path / "straight"), tiny_scene)
+    config = _short(tiny_config, tmp_path / "run")
+    for point, expected in INTERRUPTS:
+        original, calls = getattr(train_module, point), {"count": 0}
+        if point == "make_train_step":
+            # The step is compiled: interrupt the compiled step's call, not its tracing.
+            def patched(*args, original=original, calls=calls, **kwargs):
+                return _interrupting(original(*args, **kwargs), calls)
+        else:
+            patched = _interrupting(original, calls)
+        monkeypatch.setattr(train_module, point, patched)
+        with pytest.raises(KeyboardInterrupt):
+            fit_quietly(config, tiny_scene)
+        monkeypatch.setattr(train_module, point, original)
+        saved = mx.read_checkpoint_meta(mx.latest_checkpoint(config.train.run_dir))["step"]
+        assert saved == expected, point
+    resumed = fit_quietly(config, tiny_scene)
+    _assert_same_model(resumed.state, straight.state)
+    assert resumed.metrics["test"] == straight.metrics["test"]
+    log_lines = (Path(config.train.run_dir) / "train_log.jsonl").read_text().splitlines()
+    assert [entry["step"] for entry in map(json.loads, log_lines) if "loss" in entry] == [2, 4, 6, 8, 10]
+
+
+def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatch, capsys):
+    config = _with(tiny_config, "train", max_steps=2)
+    fit_quietly(config, tiny_scene)
+    original = mx._evaluate._render_dense
+    calls = {"count": 0}
+
+    def interrupted(*args):
+        calls["count"] += 1
+        if calls["count"] == 2:
+            signal.raise_signal(signal.SIGINT)
+        return original(*args)
+
+    monkeypatch.setattr(mx._evaluate, "_render_dense", interrupted)
+    from mixnerf_eqx.eval import main as eval_main
+
+    code = eval_main([config.train.run_dir, "--no-progress", "--chunk", "256"])
+    assert code == 130
+    assert "interrupted" in capsys.readouterr().err
+    # Rendering stopped at the next chunk after the Ctrl-C.
+    assert calls["count"] == 2
+
+
+def _corrupt(path: Path, how: str) -> None:
+    if how == "empty":
+        path.write_bytes(b"")
+    else:
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_one(tiny_config, tiny_scene):
+    config = _with(tiny_config, "train", max_steps=8, checkpoint_every=4)
+    fit_quietly(config, tiny_scene, stop_after=8)
+    newest = mx.latest_checkpoint(config.train.run_dir)
+    intact = (newest / "state.eqx").read_bytes()
+    for how in ("empty", "truncated"):
+        _corrupt(newest / "state.eqx", how)
+        with pytest.warns(RuntimeWarning, match=f"damaged checkpoint.*{newest.name}"):
+            run = mx.restore_run(config.train.run_dir, dataset=tiny_scene)
+        assert run.step == 4, how
+        (newest / "state.eqx").write_bytes(intact)
+    _corrupt(newest / "state.eqx", "truncated")
+    with pytest.warns(RuntimeWarning, match=newest.name):
+        resumed = fit_quietly(_with(config, "train", max_steps=10), tiny_scene)
+    assert resumed.metrics["step"] == 10
+
+
+def test_a_garbage_meta_file_is_named(tiny_config, tiny_scene):
+    config = _with(tiny_config, "train", max_steps=4, checkpoint_every=4)
+    fit_quietly(config, tiny_scene, stop_after=4)
+    meta = mx.latest_checkpoint(config.train.run_dir) / "meta.json"
+    meta.write_text("{not json")
+    with pytest.raises(mx.CheckpointError, match="meta.json"):
+        mx.read_checkpoint_meta(meta.parent)
+    with (
+        pytest.warns(RuntimeWarning, match="meta.json"),
+        pytest.raises(mx.CheckpointError, match="can be read"),
+    ):
+        mx.restore_run(config.train.run_dir, dataset=tiny_scene)
+
+
+def test_a_checkpoint_of_another_model_is_one_clear_error(tiny_config, tiny_scene, tmp_path):
+    fit_quietly(_with(tiny_config, "train", max_steps=2), tiny_scene)
+    wider = _with(_with(tiny_config, "model", width=48), "train", max_steps=2, run_dir=str(tmp_path / "wide"))
+    like = mx.init_train_state(wider, tiny_scene)
+    with pytest.raises(mx.CheckpointError, match="another model"):
+        mx.load_checkpoint(mx.latest_checkpoint(tiny_config.train.run_dir), like)
+
+
+def test_a_full_disk_leaves_no_staging_folder_and_a_clear_message(tiny_config, tiny_scene, monkeypatch):
+    config = _with(tiny_config, "train", max_steps=2)
+    state = mx.init_train_state(config, tiny_scene)
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(eqx, "tree_serialise_leaves", full)
+    with pytest.raises(mx.CheckpointError, match="No space left on device.*previous checkpoint is intact"):
+        mx.save_checkpoint(config.train.run_dir, state, config={})
+    assert list((Path(config.train.run_dir) / "checkpoints").iterdir()) == []
+
+
+def test_stale_staging_folders_are_removed_on_the_next_start(tiny_config, tiny_scene):
+    config = _with(tiny_config, "train", max_steps=2)
+    stale = Path(config.train.run_dir) / "checkpoints" / ".step_00000004.tmp-99999"
+    stale.mkdir(parents=True)
+    (stale / "state.eqx").write_bytes(b"partial")
+    fit_quietly(config, tiny_scene)
+    assert not stale.exists()
+
+
+def test_a_run_dir_that_is_a_file_is_refused_before_loading(tiny_config, monkeypatch, tmp_path):
+    target = tmp_path / "a_file"
+    target.write_text("x")
+
+    def no_loading(*args, **kwargs):
+        raise AssertionError("the dataset was loaded before the run dir was checked")
+
+    monkeypatch.setattr(train_module, "load_dataset", no_loading)
+    with pytest.raises(ConfigError, match="is a file"):
+        mx.fit(_with(tiny_config, "train", run_dir=str(target)), progress=False)
+
+
+@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root may write anywhere")
+def test_an_unwritable_run_dir_is_refused(tiny_config, tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        with pytest.raises(ConfigError, match="not writable|cannot create"):
+            mx.fit(_with(tiny_config, "train", run_dir=str(locked / "run")), progress=False)
+    finally:
+        locked.chmod(0o700)
+
+
+def test_paths_with_quotes_and_spaces_are_kept_as_given(tiny_scene, tmp_path, monkeypatch):
+    from mixnerf_eqx import train as train_cli
+
+    seen = {}
+
+    def record(config, **kwargs):
+        seen["run_dir"], seen["data_dir"] = config.train.run_dir, config.data.data_dir
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_cli, "fit", record)
+    odd = str(tmp_path / 'o\'brien "run" dir')
+    code = train_cli.main(["--run-dir", odd, "--data-dir", odd + "/data", "--no-progress"])
+    assert code == 130
+    assert seen == {"run_dir": odd, "data_dir": odd + "/data"}
+
+
+def test_options_may_follow_overrides():
+    from mixnerf_eqx.eval import parse_args as eval_args
+    from mixnerf_eqx.train import parse_args
+
+    args = parse_args(["train.max_steps=3", "--no-progress", "train.eval_every=0", "--run-dir", "x"])
+    assert args.no_progress and args.run_dir == "x"
+    assert args.overrides == ["train.max_steps=3", "train.eval_every=0"]
+    assert eval_args(["somewhere", "--no-lpips"]).no_lpips
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [(["--chunk", "0"], "--chunk"), (["--chunk", "-5"], "--chunk"), (["--max-views", "-1"], "--max-views")],
+)
+def test_eval_refuses_meaningless_numbers(arguments, message, tmp_path, capsys):
+    from mixnerf_eqx.eval import main as eval_main
+
+    assert eval_main([str(tmp_path), "--no-progress", *arguments]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error:") and message in error and "Traceback" not in error
+
+
+def test_a_huge_chunk_is_bounded_by_the_rays(tiny_config, tiny_scene):
+    model = mx.build_model(tiny_config, key=jax.random.key(0))
+    rays = mx.data.rays_for_views(tiny_scene.test.select([0]), tiny_scene.near, tiny_scene.far)
+    rendered = mx.render_rays(model, rays, chunk=10**9)
+    count = tiny_scene.test.height * tiny_scene.test.width
+    assert rendered.counts.padded_evaluations == count * model.samples_per_ray
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("train.eval_every=-1", "train.eval_every"),
+        ("model.skip_layer=99", "model.skip_layer"),
+        ("optim.warmup_steps=-1", "optim.warmup_steps"),
+        ("loss.lambda_depth=-0.5", "loss.lambda_depth"),
+        ("train.num_eval_views=-1", "train.num_eval_views"),
+        ("model.min_deg=20", "model.min_deg"),
+        ('train.run_dir=""', "train.run_dir"),
+        ("train.max_steps=4000000000", "train.max_steps"),
+        ("data.near=6.0", "data.near"),
+    ],
+)
+def test_meaningless_settings_are_refused_naming_the_key(override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        mx.load_config(
+            "configs/builtin.toml", [override, "data.far=4.0"] if "near" in override else [override]
+        )
+
+
+def test_the_log_is_on_disk_at_every_checkpoint(tiny_config, tiny_scene, monkeypatch):
+    config = _with(tiny_config, "train", max_steps=8, checkpoint_every=4)
+    log_path = Path(config.train.run_dir) / "train_log.jsonl"
+    seen = []
+    original = train_module.save_checkpoint
+
+    def look(run_dir, state, **kwargs):
+        path = original(run_dir, state, **kwargs)
+        seen.append((int(state.step), [json.loads(x)["step"] for x in log_path.read_text().splitlines()]))
+        return path
+
+    monkeypatch.setattr(train_module, "save_checkpoint", look)
+    fit_quietly(config, tiny_scene)
+    assert seen[0] == (4, [2, 4]) and seen[1][0] == 8
+
+
+def test_progress_off_a_terminal_is_plain_lines(capsys):
+    progress = Progress(100, unit="step", interval=0.0)
+    for done in (10, 20):
+        progress.update(done, loss="0.1")
+    progress.write("step 20: held-out psnr 20")
+    progress.close()
+    captured = capsys.readouterr()
+    assert "\r" not in captured.err
+    assert captured.err.splitlines() == ["step 10/100 loss 0.1", "step 20/100 loss 0.1"]
+    assert captured.out == "step 20: held-out psnr 20\n"
+    silent = Progress(100, unit="step", enabled=False)
+    silent.update(50)
+    silent.write("still shown")
+    assert capsys.readouterr().out == "still shown\n"
+
+
+def test_a_finished_run_continues_to_more_steps_at_its_final_learning_rate(tiny_config, tiny_scene):
+    config = _with(_with(tiny_config, "optim", warmup_steps=2), "train", max_steps=6)
+    first = fit_quietly(config, tiny_scene)
+    longer = fit_quietly(_with(config, "train", max_steps=10), tiny_scene)
+    assert first.metrics["step"] == 6 and longer.metrics["step"] == 10
+    rates = [entry["lr"] for entry in longer.history]
+    assert rates == pytest.approx([config.optim.lr_final] * len(rates), rel=1e-5)
+    stored = json.loads((Path(config.train.run_dir) / "config.json").read_text())
+    assert stored["optim"]["decay_steps"] == 6 and stored["train"]["max_steps"] == 10
+    with pytest.raises(ConfigError, match="more than train.max_steps"):
+        fit_quietly(_with(config, "train", max_steps=4), tiny_scene)
+
+
+def test_notebook_cells_have_ids():
+    for path in Path("notebooks").glob("*.ipynb"):
+        cells = json.loads(path.read_text())["cells"]
+        ids = [cell.get("id") for cell in cells]
+        assert all(ids) and len(set(ids)) == len(ids), path
+
+
+def test_the_readme_example_does_not_share_the_quick_start_run_dir():
+    readme = Path("README.md").read_text()
+    example = readme[readme.index("```python") :]
+    example = example[: example.index("```", 3)]
+    assert "runs/builtin" not in example and "train.run_dir=" in example
+
+
+def test_interrupts_outside_the_main_thread_are_left_alone():
+    import threading
+
+    from mixnerf_eqx._interrupt import deferred_interrupts
+
+    before = signal.getsignal(signal.SIGINT)
+    result = {}
+
+    def work():
+        with deferred_interrupts():
+            result["handler"] = signal.getsignal(signal.SIGINT)
+
+    thread = threading.Thread(target=work)
+    thread.start()
+    thread.join()
+    assert result["handler"] is before and signal.getsignal(signal.SIGINT) is before
