@@ -113,12 +113,21 @@ def load_checkpoint(path: str | Path, like: TrainState) -> TrainState:
     try:
         stored = eqx.tree_deserialise_leaves(file, _storable(like))
     except (OSError, EOFError, ValueError, RuntimeError, TypeError) as error:
-        raise CheckpointError(
-            f"{file} cannot be read into this run's model ({type(error).__name__}: {error}); it is "
-            "damaged, or was written for another model or config"
-        ) from None
+        raise CheckpointError(f"{file} {_unreadable(file, error)}") from None
     key = jax.random.wrap_key_data(np.asarray(stored.key), impl=jax.random.key_impl(like.key))
     return eqx.tree_at(lambda s: s.key, stored, key)
+
+
+def _unreadable(file: Path, error: Exception) -> str:
+    """Why a state file could not be read, in words."""
+    if not file.is_file():
+        return "is missing"
+    if file.stat().st_size == 0:
+        return "is empty"
+    message = str(error)
+    if "changed shape" in message or "dtype" in message:
+        return f"was written for another model or config ({message})"
+    return "is damaged: cut short, or not a checkpoint of this package"
 
 
 def load_latest_readable(

@@ -11,6 +11,8 @@ in the environment. Nothing else turns them on or off.
 
 import argparse
 import contextlib
+import sys
+import warnings
 from collections.abc import Iterator
 
 import jaxtyping
@@ -38,11 +40,18 @@ def add_typecheck_argument(parser: argparse.ArgumentParser) -> None:
 @contextlib.contextmanager
 def typecheck_argument(args: argparse.Namespace) -> Iterator[None]:
     """Acts on `--no-typecheck` for the duration of a command (the switch is restored after,
-    so that calling a command's `main` from Python leaves the caller's setting alone)."""
-    previous = typecheck_enabled()
+    so that calling a command's `main` from Python leaves the caller's setting alone). Warnings
+    are shown as one line each meanwhile, as a command line's messages are."""
+    previous, show = typecheck_enabled(), warnings.showwarning
     if args.no_typecheck:
         set_typecheck(False)
+
+    def one_line(message, category, filename, lineno, file=None, line=None):
+        print(f"warning: {message}", file=sys.stderr if file is None else file)
+
+    warnings.showwarning = one_line
     try:
         yield
     finally:
         set_typecheck(previous)
+        warnings.showwarning = show

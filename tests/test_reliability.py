@@ -11,6 +11,7 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -121,43 +122,50 @@ def _corrupt(path: Path, how: str) -> None:
         path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
 
 
+def _checkpoints(config, dataset, steps):
+    """Checkpoints of the initial state labelled with `steps` (no training needed to read them)."""
+    state = mx.init_train_state(config, dataset)
+    for step in steps:
+        labelled = eqx.tree_at(lambda s: s.step, state, jnp.asarray(step, jnp.int32))
+        mx.save_checkpoint(config.train.run_dir, labelled, config=mx.config_to_dict(config))
+    (Path(config.train.run_dir) / "config.json").write_text(json.dumps(mx.config_to_dict(config)))
+    return [mx.latest_checkpoint(config.train.run_dir).parent / f"step_{step:08d}" for step in steps]
+
+
 def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_one(tiny_config, tiny_scene):
-    config = _with(tiny_config, "train", max_steps=8, checkpoint_every=4)
-    fit_quietly(config, tiny_scene, stop_after=8)
-    newest = mx.latest_checkpoint(config.train.run_dir)
+    config = _with(tiny_config, "train", max_steps=6)
+    _, newest = _checkpoints(config, tiny_scene, [2, 4])
     intact = (newest / "state.eqx").read_bytes()
     for how in ("empty", "truncated"):
         _corrupt(newest / "state.eqx", how)
         with pytest.warns(RuntimeWarning, match=f"damaged checkpoint.*{newest.name}"):
             run = mx.restore_run(config.train.run_dir, dataset=tiny_scene)
-        assert run.step == 4, how
+        assert run.step == 2, how
         (newest / "state.eqx").write_bytes(intact)
     _corrupt(newest / "state.eqx", "truncated")
     with pytest.warns(RuntimeWarning, match=newest.name):
-        resumed = fit_quietly(_with(config, "train", max_steps=10), tiny_scene)
-    assert resumed.metrics["step"] == 10
+        resumed = fit_quietly(config, tiny_scene)
+    assert resumed.metrics["step"] == 6
+    assert [entry["step"] for entry in resumed.history] == [4, 6]
 
 
 def test_a_garbage_meta_file_is_named(tiny_config, tiny_scene):
-    config = _with(tiny_config, "train", max_steps=4, checkpoint_every=4)
-    fit_quietly(config, tiny_scene, stop_after=4)
-    meta = mx.latest_checkpoint(config.train.run_dir) / "meta.json"
-    meta.write_text("{not json")
+    (checkpoint,) = _checkpoints(tiny_config, tiny_scene, [4])
+    (checkpoint / "meta.json").write_text("{not json")
     with pytest.raises(mx.CheckpointError, match="meta.json"):
-        mx.read_checkpoint_meta(meta.parent)
+        mx.read_checkpoint_meta(checkpoint)
     with (
         pytest.warns(RuntimeWarning, match="meta.json"),
         pytest.raises(mx.CheckpointError, match="can be read"),
     ):
-        mx.restore_run(config.train.run_dir, dataset=tiny_scene)
+        mx.restore_run(tiny_config.train.run_dir, dataset=tiny_scene)
 
 
-def test_a_checkpoint_of_another_model_is_one_clear_error(tiny_config, tiny_scene, tmp_path):
-    fit_quietly(_with(tiny_config, "train", max_steps=2), tiny_scene)
-    wider = _with(_with(tiny_config, "model", width=48), "train", max_steps=2, run_dir=str(tmp_path / "wide"))
-    like = mx.init_train_state(wider, tiny_scene)
-    with pytest.raises(mx.CheckpointError, match="another model"):
-        mx.load_checkpoint(mx.latest_checkpoint(tiny_config.train.run_dir), like)
+def test_a_checkpoint_of_another_model_is_one_clear_error(tiny_config, tiny_scene):
+    (checkpoint,) = _checkpoints(tiny_config, tiny_scene, [2])
+    like = mx.init_train_state(_with(tiny_config, "model", width=48), tiny_scene)
+    with pytest.raises(mx.CheckpointError, match="another model or config"):
+        mx.load_checkpoint(checkpoint, like)
 
 
 def test_a_full_disk_leaves_no_staging_folder_and_a_clear_message(tiny_config, tiny_scene, monkeypatch):
