@@ -202,6 +202,17 @@ def test_a_run_dir_that_is_a_file_is_refused_before_loading(tiny_config, monkeyp
         mx.fit(_with(tiny_config, "train", run_dir=str(target)), progress=False)
 
 
+def test_a_run_dir_that_cannot_be_created_or_written_is_refused(tiny_config, tmp_path, monkeypatch):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    with pytest.raises(ConfigError, match="cannot create train.run_dir"):
+        mx.fit(_with(tiny_config, "train", run_dir=str(blocker / "run")), progress=False)
+    # Permissions as a user without write access sees them (root may write anywhere).
+    monkeypatch.setattr(train_module.os, "access", lambda path, mode: False)
+    with pytest.raises(ConfigError, match="is not writable"):
+        mx.fit(_with(tiny_config, "train", run_dir=str(tmp_path / "run")), progress=False)
+
+
 @pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root may write anywhere")
 def test_an_unwritable_run_dir_is_refused(tiny_config, tmp_path):
     locked = tmp_path / "locked"

@@ -1,5 +1,6 @@
 """Volume-rendering math (paper eqs. 2 and 8) against float64 numpy references."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -138,12 +139,15 @@ def test_a_batch_renders_each_ray_as_render_ray_does(tiny_config, tiny_scene):
     rays = mx.data.rays_for_views(tiny_scene.train.select([0]), tiny_scene.near, tiny_scene.far)
     rays = rays.reshape(-1)[::97][:6].reshape(2, 3)
     key = jax.random.key(11)
+    # Compiled, as the model is used (an eager render of each ray alone takes seconds).
+    render_batch = eqx.filter_jit(lambda m, r, k: m(r, key=k))
+    render_one = eqx.filter_jit(lambda m, r, k: m.render_ray(r, key=k))
     for batch_key in (None, key):
-        batch = model(rays, key=batch_key)
+        batch = render_batch(model, rays, batch_key)
         flat = rays.reshape(-1)
         ray_keys = None if batch_key is None else jax.random.split(batch_key, 6)
         for i in range(6):
-            one = model.render_ray(flat[i], key=None if ray_keys is None else ray_keys[i])
+            one = render_one(model, flat[i], None if ray_keys is None else ray_keys[i])
             for level in ("coarse", "fine"):
                 a, b = getattr(batch, level), getattr(one, level)
                 np.testing.assert_allclose(a.rgb.reshape(6, 3)[i], b.rgb, atol=1e-5)
