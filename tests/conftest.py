@@ -1,6 +1,10 @@
+import atexit
 import dataclasses
 import os
+import shutil
+import tempfile
 
+import jax
 import pytest
 from hypothesis import settings
 
@@ -12,6 +16,15 @@ from mixnerf_eqx.data import load_dataset
 settings.register_profile("ci", derandomize=True, database=None)
 if os.environ.get("CI"):
     settings.load_profile("ci")
+
+# Many tests train the same tiny model: each `fit` traces a new step function, but its XLA
+# program is the same, so a compilation cache (fresh for each session, so it cannot go stale)
+# lets the compiler's work be done once. The executables are the same, so are the results.
+_XLA_CACHE = tempfile.mkdtemp(prefix="mixnerf-eqx-xla-")
+atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
+jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 # A model and scene small enough that a training run takes seconds on two CPU cores.
 TINY_OVERRIDES = [
