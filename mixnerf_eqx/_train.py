@@ -6,10 +6,12 @@ outcome to small pieces that each do one thing: `_RunLog` (the loss history and 
 evaluation and the checkpoints. The final evaluation writes the run's report.
 """
 
+import contextlib
 import dataclasses
 import json
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -317,8 +319,23 @@ def fit(
         save_checkpoint(run_dir, state, config=config_dict)
     metrics = {"step": done, "skipped_steps": guard.total}
     if done >= train.max_steps:
-        metrics = _final_report(config, dataset, state, run_dir, write_renders, metrics, progress)
+        with _rendering_after_training(done, run_dir):
+            metrics = _final_report(config, dataset, state, run_dir, write_renders, metrics, progress)
     return TrainResult(state=state, metrics=metrics, run_dir=run_dir, history=log.history)
+
+
+@contextlib.contextmanager
+def _rendering_after_training(step: int, run_dir: Path) -> Iterator[None]:
+    """Ctrl-C while the test views render ends with a word on what is already safe."""
+    try:
+        with deferred_interrupts():
+            yield
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted while rendering the test views; the checkpoint of step {step} is "
+            f"saved: python -m mixnerf_eqx.eval {run_dir} renders and scores it"
+        )
+        raise
 
 
 def _final_report(
@@ -331,26 +348,6 @@ def _final_report(
     progress: bool,
 ) -> dict[str, Any]:
     """Renders and scores every test view, writes `metrics.json` (and the PNGs)."""
-    try:
-        with deferred_interrupts():
-            return _report(config, dataset, state, run_dir, write_renders, metrics, progress)
-    except KeyboardInterrupt:
-        print(
-            f"\ninterrupted while rendering the test views; the checkpoint of step {int(state.step)} is "
-            f"saved: python -m mixnerf_eqx.eval {run_dir} renders and scores it"
-        )
-        raise
-
-
-def _report(
-    config: Config,
-    dataset: Dataset,
-    state: TrainState,
-    run_dir: Path,
-    write_renders: bool,
-    metrics: dict[str, Any],
-    progress: bool,
-) -> dict[str, Any]:
     renders = run_dir / "renders"
     bar = Progress(dataset.test.num_views, unit="view", enabled=progress)
 
