@@ -97,6 +97,7 @@ class TrainConfig:
     render_chunk: int = 4096  # rays rendered at once when rendering images
     run_dir: str = "runs/builtin"  # where checkpoints, metrics and renders go
     max_nonfinite_steps: int = 20  # stop after this many consecutive skipped (non-finite) steps
+    data_parallel: Literal["auto", "on", "off"] = "auto"  # split each batch over every device (auto: if >1)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -38,6 +38,7 @@ from ._run import (
     render_summary,
     write_view_renders,
 )
+from ._sharding import DataParallel, data_parallel_mesh
 from ._train_state import (
     StepMetrics,
     TrainState,
@@ -74,7 +75,7 @@ def _due(done: int, every: int) -> bool:
 
 def _scalars(metrics: StepMetrics) -> dict[str, float]:
     terms = metrics.terms
-    names = ("total", "mse_fine", "mse_coarse", "nll_colour", "nll_depth", "nll_regen")
+    names = ("total", "mse_fine", "mse_coarse", "nll_colour", "nll_depth", "nll_regen", "regulariser")
     values = {("loss" if name == "total" else name): float(getattr(terms, name)) for name in names}
     values.update(
         psnr=float(metrics.psnr), lr=float(metrics.learning_rate), lambda_colour=float(metrics.lambda_colour)
@@ -283,6 +284,12 @@ def fit(
     last_step = train.max_steps if stop_after is None else min(train.max_steps, stop_after)
     data, take_step = training_rays(dataset), make_train_step(config, max_traces=1)
     draw = eqx.filter_jit(draw_batch)
+    mesh = data_parallel_mesh(train.data_parallel, train.batch_size)
+    if mesh is not None:
+        # The same step, its batch split over the devices; state and rays on every device.
+        parallel = DataParallel(mesh)
+        state, data = parallel.replicate(state), parallel.replicate(data)
+        take_step, draw = parallel.step(take_step), parallel.draw(draw_batch)
     log = _RunLog(run_dir, start, train.max_steps, progress)
     guard = _Guard(train.max_nonfinite_steps, run_dir)
     try:
