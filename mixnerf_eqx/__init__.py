@@ -52,6 +52,12 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._occupancy import empty_grid as empty_grid
     from ._occupancy import refresh_occupancy as refresh_occupancy
     from ._occupancy import update_occupancy as update_occupancy
+    from ._predictive import ColourMixture as ColourMixture
+    from ._predictive import Predictive as Predictive
+    from ._predictive import PredictiveSummary as PredictiveSummary
+    from ._predictive import TerminationDistribution as TerminationDistribution
+    from ._predictive import predictive as predictive
+    from ._predictive import summarise as summarise
     from ._rays import RayBundle as RayBundle
     from ._rays import RaySamples as RaySamples
     from ._rays import camera_rays as camera_rays
@@ -96,3 +102,11 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._train_state import update_grid as update_grid
     from ._typecheck import set_typecheck as set_typecheck
     from ._typecheck import typecheck_enabled as typecheck_enabled
+    from ._uncertainty import Sparsification as Sparsification
+    from ._uncertainty import calibration_report as calibration_report
+    from ._uncertainty import collect_mixtures as collect_mixtures
+    from ._uncertainty import fit_temperature as fit_temperature
+    from ._uncertainty import interval_coverage as interval_coverage
+    from ._uncertainty import predict_rays as predict_rays
+    from ._uncertainty import predict_views as predict_views
+    from ._uncertainty import sparsification as sparsification

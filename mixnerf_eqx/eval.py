@@ -4,6 +4,8 @@ Loads the run's config and its latest (or the given) checkpoint, renders the tes
 a time in chunks of rays (memory stays bounded whatever the resolution), writes per-image and
 mean metrics to `RUN_DIR/eval/metrics.json` with colour and depth PNGs beside it, and prints a
 table. LPIPS needs the optional `lpips` extra; without it LPIPS is reported as unavailable.
+With `--uncertainty` it also writes the predictive distribution's spread beside the error maps,
+the arrays in `uncertainty.npz`, and the calibration measures (`docs/predictive.md`).
 """
 
 import argparse
@@ -13,6 +15,7 @@ import time
 from pathlib import Path
 
 import jax
+import numpy as np
 
 from ._config import ConfigError
 from ._evaluate import Rendered, evaluate
@@ -20,6 +23,7 @@ from ._interrupt import deferred_interrupts
 from ._progress import Progress
 from ._run import Run, grid_for_rendering, make_skipping, render_summary, restore_run, write_view_renders
 from ._typecheck import add_typecheck_argument, typecheck_argument
+from ._uncertainty import calibration_report, predict_views, write_uncertainty_maps
 from .data import DatasetError, evenly_spaced
 from .metrics import lpips_available
 
@@ -50,6 +54,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/eval)")
     parser.add_argument("--no-renders", action="store_true", help="write no PNGs")
+    parser.add_argument(
+        "--uncertainty",
+        action="store_true",
+        help="also write the predictive distribution's spread (PNGs beside the error maps, arrays in "
+        "uncertainty.npz) and its calibration against the true pixels (docs/predictive.md)",
+    )
+    parser.add_argument(
+        "--temperature",
+        type=float,
+        default=1.0,
+        help="with --uncertainty: multiply every beta by this factor (a post-hoc calibration)",
+    )
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
     add_typecheck_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -100,6 +116,15 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
             f"{render['occupied_fraction']:.1%} of the grid occupied, "
             f"{render['field_evaluations_per_frame']:.0f} field evaluations per frame instead of "
             f"{render['dense_evaluations_per_frame']:.0f} ({render['evaluation_reduction']:.2f}x fewer)"
+        )
+    if "uncertainty" in result:
+        report = result["uncertainty"]
+        coverage = ", ".join(f"{mass}: {value['mean']:.3f}" for mass, value in report["coverage"].items())
+        depth = "n/a" if report["depth_ause"] is None else f"{report['depth_ause']:.4f}"
+        print(
+            f"uncertainty: interval coverage ({coverage}), held-out NLL {report['nll']:.3f} per pixel, "
+            f"AUSE colour {report['colour_ause']:.4f}, depth {depth}; "
+            f"{report['seconds_per_frame']:.2f} s per frame; arrays: {out / 'uncertainty.npz'}"
         )
     print(f"metrics: {out / 'metrics.json'}")
     if renders:
@@ -159,14 +184,36 @@ def run(args: argparse.Namespace) -> dict:
         "mean": evaluation.means,
         "per_view": evaluation.per_view,
     }
+    if args.uncertainty:
+        result["uncertainty"] = _uncertainty(
+            restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
+        )
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
     _print_summary(result, grid, choice, out, not args.no_renders)
     return result
 
 
+def _uncertainty(restored: Run, views, chunk: int, out: Path, *, temperature: float, renders: bool) -> dict:
+    """The predictive pass over `views`: maps (PNGs unless `renders` is false, and arrays in
+    `uncertainty.npz`) and the calibration measures."""
+    started = time.perf_counter()
+    dataset = restored.dataset
+    maps = predict_views(restored.model, views, dataset.near, dataset.far, chunk, temperature=temperature)
+    seconds = time.perf_counter() - started
+    np.savez_compressed(out / "uncertainty.npz", view_ids=np.asarray(views.ids), **maps)
+    if renders:
+        write_uncertainty_maps(out, views, maps, near=dataset.near, far=dataset.far)
+    report = calibration_report(maps, views.images, views.depths)
+    report["temperature"] = temperature
+    report["seconds_per_frame"] = seconds / max(views.num_views, 1)
+    return report
+
+
 def _check_arguments(args: argparse.Namespace) -> None:
     if args.chunk is not None and args.chunk < 1:
         raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
+    if not args.temperature > 0:
+        raise ConfigError(f"--temperature must be positive, got {args.temperature}")
     if args.max_views < 0:
         raise ConfigError(f"--max-views must be 0 (all test views) or positive, got {args.max_views}")
 
