@@ -36,8 +36,14 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._evaluate import render_rays as render_rays
     from ._evaluate import render_views as render_views
     from ._field import AbstractField as AbstractField
+    from ._field import AbstractGridEncoding as AbstractGridEncoding
     from ._field import FieldOutputs as FieldOutputs
+    from ._field import GridField as GridField
+    from ._field import HashEncoding as HashEncoding
     from ._field import MipNeRFField as MipNeRFField
+    from ._field import TriPlaneEncoding as TriPlaneEncoding
+    from ._field import level_resolutions as level_resolutions
+    from ._field import level_scale_weights as level_scale_weights
     from ._loss import LossTerms as LossTerms
     from ._loss import LossWeights as LossWeights
     from ._loss import loss_fn as loss_fn
@@ -47,6 +53,7 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._mixture.laplace import laplace_log_density as laplace_log_density
     from ._model import MixNeRF as MixNeRF
     from ._model import RenderOutputs as RenderOutputs
+    from ._model import build_field as build_field
     from ._model import build_model as build_model
     from ._occupancy import OccupancyGrid as OccupancyGrid
     from ._occupancy import empty_grid as empty_grid
@@ -98,6 +105,7 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._train_state import make_occupancy_grid as make_occupancy_grid
     from ._train_state import make_optimizer as make_optimizer
     from ._train_state import make_train_step as make_train_step
+    from ._train_state import scene_box as scene_box
     from ._train_state import training_rays as training_rays
     from ._train_state import update_grid as update_grid
     from ._typecheck import set_typecheck as set_typecheck

@@ -54,6 +54,27 @@ class ModelConfig:
     frustum: Literal["auto", "cone", "cylinder"] = "auto"  # "auto": what the dataset says
     remat: bool = False  # recompute MLP activations in the backward pass (less memory, ~1/3 more compute)
     matmul_dtype: Literal["float32", "bfloat16"] = "float32"  # dtype of the field's matrix products
+    field: Literal["mlp", "grid"] = "mlp"  # the mip-NeRF MLP (the paper's), or a grid and decoder ([grid])
+
+
+@dataclasses.dataclass(frozen=True)
+class GridConfig:
+    """The grid field (`model.field = "grid"`); the samplers and heads stay in [model]."""
+
+    encoding: Literal["triplane", "hash"] = "triplane"  # K-Planes-style planes, or a hash grid
+    levels: int = 4  # resolutions, growing geometrically from min_resolution to max_resolution
+    min_resolution: int = 32  # coarsest level's resolution (plane texels / hash cells per axis)
+    max_resolution: int = 256  # finest level's resolution
+    features: int = 16  # features per level
+    hash_table_log2: int = 17  # hash grid: log2 of the entries of each level's table
+    decoder_width: int = 64  # width of the density decoder's hidden layer
+    geo_features: int = 15  # features passed from the density decoder to the colour layer
+    view_width: int = 64  # width of the view-dependent colour layer
+    box_radius: float = 0.0  # > 0: the grid spans [-r, r]^3, nothing outside; 0: the training frusta's box
+    scale_weighting: bool = True  # weight levels by the frustum's size (Zip-NeRF's anti-aliasing)
+    tv_weight: float = 0.0  # weight of total variation on the planes (the tri-plane encoding)
+    coarse_to_fine_steps: int = 0  # reveal the levels coarse to fine over this many steps (0: off)
+    density_noise: float = 0.0  # std of the raw-density noise in training
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +155,7 @@ class Config:
     method: Literal["mixnerf", "mipnerf"] = "mixnerf"  # MixNeRF, or its mip-NeRF baseline (no mixture)
     data: DataConfig = DataConfig()
     model: ModelConfig = ModelConfig()
+    grid: GridConfig = GridConfig()
     loss: LossConfig = LossConfig()
     optim: OptimConfig = OptimConfig()
     train: TrainConfig = TrainConfig()
@@ -183,6 +205,10 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "occupancy.update_every",
             "occupancy.segments",
             "occupancy.chunk",
+            "grid.levels",
+            "grid.features",
+            "grid.decoder_width",
+            "grid.view_width",
         )
     ),
     *(
@@ -218,8 +244,15 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "occupancy.calibrate_tolerance_db",
             "occupancy.calibrate_doublings",
             "occupancy.dilation",
+            "grid.geo_features",
+            "grid.box_radius",
+            "grid.tv_weight",
+            "grid.coarse_to_fine_steps",
+            "grid.density_noise",
         )
     ),
+    ("grid.min_resolution", *_at_least(2)),
+    ("grid.hash_table_log2", *_within(3, 30)),
     ("model.max_deg", *_at_least(1)),
     ("train.max_steps", lambda value: value <= _INT32_MAX, f"must be at most {_INT32_MAX} (int32 steps)"),
     ("train.anneal_start", *_within(0, 1, low_open=True)),
@@ -253,6 +286,11 @@ def _consistency_problems(config: "Config") -> list[str]:
         )
     if model.min_deg >= model.max_deg:
         problems.append(f"model.min_deg ({model.min_deg}) must be below model.max_deg ({model.max_deg})")
+    if config.grid.max_resolution < config.grid.min_resolution:
+        problems.append(
+            f"grid.max_resolution ({config.grid.max_resolution}) must be at least grid.min_resolution "
+            f"({config.grid.min_resolution})"
+        )
     if data.far > 0 and data.near >= data.far:
         problems.append(f"data.near ({data.near:g}) must be below data.far ({data.far:g})")
     if not config.train.run_dir.strip():
@@ -279,6 +317,7 @@ def validate(config: "Config") -> None:
 _SECTIONS = {
     "data": DataConfig,
     "model": ModelConfig,
+    "grid": GridConfig,
     "loss": LossConfig,
     "optim": OptimConfig,
     "train": TrainConfig,

@@ -67,6 +67,7 @@ class LossTerms(eqx.Module):
     nll_colour: Float[Array, ""]
     nll_depth: Float[Array, ""]
     nll_regen: Float[Array, ""]
+    regulariser: Float[Array, ""]
 
 
 def _level_nlls(
@@ -107,7 +108,9 @@ def loss_terms(
     lambda_colour: Float[Array, ""],
     weights: LossWeights,
 ) -> LossTerms:
-    """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C`.
+    """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C + R`.
+
+    `R` is the field's own regulariser (a grid's total variation; 0 for the MLP field).
 
     `MSE = mean_rays ||rgb_fine - c||^2 + coarse_mse * mean_rays ||rgb_coarse - c||^2`, the
     squared error summed over the colour channels (paper eq. 11; the released `train.py`
@@ -126,8 +129,9 @@ def loss_terms(
     channels = target_rgb.shape[-1]
     mse_fine = jnp.mean((outputs.fine.rgb - target_rgb) ** 2)
     mse_coarse = jnp.mean((outputs.coarse.rgb - target_rgb) ** 2)
+    regulariser = model.field.regulariser()
     # ||c_hat - c||^2 summed over the channels, averaged over rays: `channels` per-element MSEs.
-    total = channels * (mse_fine + weights.coarse_mse * mse_coarse)
+    total = channels * (mse_fine + weights.coarse_mse * mse_coarse) + regulariser
     zero = jnp.zeros((), mse_fine.dtype)
     nll_colour = nll_depth = nll_regen = zero
     if weights.uses_mixture:
@@ -146,6 +150,7 @@ def loss_terms(
         nll_colour=nll_colour,
         nll_depth=nll_depth,
         nll_regen=nll_regen,
+        regulariser=regulariser,
     )
 
 

@@ -13,7 +13,8 @@ from jaxtyping import Array, Float
 
 from ._config import Config
 from ._custom_types import FourKeysPerRay, PRNGKey, RayKeys
-from ._field import AbstractField, FieldOutputs, MipNeRFField
+from ._field import AbstractField, FieldOutputs, GridField, HashEncoding, MipNeRFField, TriPlaneEncoding
+from ._field.grid import level_resolutions
 from ._mixture import AbstractMixture, LaplaceMixture
 from ._rays import RayBundle, RaySamples
 from ._renderer import AbstractRenderer, LevelOutputs, VolumeRenderer
@@ -159,8 +160,74 @@ class MixNeRF(eqx.Module):
         return jax.tree_util.tree_map(lambda x: x.reshape(*batch_shape, *x.shape[1:]), outputs)
 
 
+Box = tuple[tuple[float, float, float], tuple[float, float, float]]
+
+
+def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -> AbstractField:
+    """The field `config.model.field` names, with mixture heads for MixNeRF.
+
+    A grid field spans `[-r, r]^3` when `config.grid.box_radius = r > 0` (the scene lies
+    inside; nothing outside), and otherwise `scene_box`, the training frusta's box.
+    """
+    mixture_heads = config.method == "mixnerf"
+    model_cfg = config.model
+    if model_cfg.field == "mlp":
+        return MipNeRFField(
+            width=model_cfg.width,
+            depth=model_cfg.depth,
+            view_width=model_cfg.view_width,
+            skip_layer=model_cfg.skip_layer,
+            min_deg=model_cfg.min_deg,
+            max_deg=model_cfg.max_deg,
+            viewdir_max_deg=model_cfg.viewdir_max_deg,
+            density_noise=model_cfg.density_noise,
+            density_bias=model_cfg.density_bias,
+            rgb_padding=model_cfg.rgb_padding,
+            mixture_heads=mixture_heads,
+            matmul_dtype=model_cfg.matmul_dtype,
+            key=key,
+        )
+    grid = config.grid
+    if grid.box_radius > 0:
+        radius = grid.box_radius
+        scene_box, bounded = ((-radius,) * 3, (radius,) * 3), True
+    elif scene_box is None:
+        raise ValueError("a grid field with grid.box_radius = 0 needs the scene's box (scene_box)")
+    else:
+        bounded = False
+    encoding_key, decoder_key = jax.random.split(key)
+    resolutions = level_resolutions(grid.levels, grid.min_resolution, grid.max_resolution)
+    if grid.encoding == "triplane":
+        encoding = TriPlaneEncoding(resolutions, grid.features, key=encoding_key)
+    else:
+        encoding = HashEncoding(resolutions, grid.features, 2**grid.hash_table_log2, key=encoding_key)
+    return GridField(
+        encoding,
+        box_min=tuple(float(v) for v in scene_box[0]),
+        box_max=tuple(float(v) for v in scene_box[1]),
+        bounded=bounded,
+        decoder_width=grid.decoder_width,
+        geo_features=grid.geo_features,
+        view_width=grid.view_width,
+        viewdir_max_deg=model_cfg.viewdir_max_deg,
+        scale_weighting=grid.scale_weighting,
+        tv_weight=grid.tv_weight,
+        coarse_to_fine_steps=grid.coarse_to_fine_steps,
+        density_noise=grid.density_noise,
+        density_bias=model_cfg.density_bias,
+        rgb_padding=model_cfg.rgb_padding,
+        mixture_heads=mixture_heads,
+        key=decoder_key,
+    )
+
+
 def build_model(
-    config: Config, *, key: PRNGKey, frustum: str = "cone", white_background: bool = True
+    config: Config,
+    *,
+    key: PRNGKey,
+    frustum: str = "cone",
+    white_background: bool = True,
+    scene_box: Box | None = None,
 ) -> MixNeRF:
     """Builds the model that `config` describes.
 
@@ -171,6 +238,8 @@ def build_model(
     - `key`: initialisation randomness.
     - `frustum`: the dataset's frustum shape, used when `config.model.frustum` is `"auto"`.
     - `white_background`: composite on white (Blender-style scenes).
+    - `scene_box`: the training frusta's box `(min, max)`, which a grid field spans unless
+      `config.grid.box_radius` is set (`mixnerf_eqx.scene_box` computes it).
 
     **Returns:**
 
@@ -179,21 +248,7 @@ def build_model(
     model_cfg = config.model
     shape = frustum if model_cfg.frustum == "auto" else model_cfg.frustum
     mixture_model = config.method == "mixnerf"
-    field = MipNeRFField(
-        width=model_cfg.width,
-        depth=model_cfg.depth,
-        view_width=model_cfg.view_width,
-        skip_layer=model_cfg.skip_layer,
-        min_deg=model_cfg.min_deg,
-        max_deg=model_cfg.max_deg,
-        viewdir_max_deg=model_cfg.viewdir_max_deg,
-        density_noise=model_cfg.density_noise,
-        density_bias=model_cfg.density_bias,
-        rgb_padding=model_cfg.rgb_padding,
-        mixture_heads=mixture_model,
-        matmul_dtype=model_cfg.matmul_dtype,
-        key=key,
-    )
+    field = build_field(config, key=key, scene_box=scene_box)
     mixture = None
     if mixture_model:
         mixture = LaplaceMixture(

@@ -46,6 +46,13 @@ def make_optimizer(optim: OptimConfig, learning_rate: optax.Schedule) -> optax.G
     return optax.chain(*parts)
 
 
+def scene_box(dataset: Dataset) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The box of the training rays between near and far (in NDC for LLFF scenes), grown by
+    1% on every side: every sample a training ray can place lies inside."""
+    low, high = frustum_box(rays_for_views(dataset.train, dataset.near, dataset.far))
+    return tuple(float(v) for v in low), tuple(float(v) for v in high)
+
+
 def make_occupancy_grid(occupancy: OccupancyConfig, dataset: Dataset) -> OccupancyGrid:
     """An unevaluated grid for `dataset` as `occupancy` says.
 
@@ -57,7 +64,7 @@ def make_occupancy_grid(occupancy: OccupancyConfig, dataset: Dataset) -> Occupan
         radius = occupancy.box_radius
         box_min, box_max, outside_occupied = (-radius,) * 3, (radius,) * 3, False
     else:
-        box_min, box_max = frustum_box(rays_for_views(dataset.train, dataset.near, dataset.far))
+        box_min, box_max = scene_box(dataset)
         outside_occupied = True
     return empty_grid(
         box_min,
@@ -114,7 +121,11 @@ def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = 
     """
     model_key, train_key = jax.random.split(init_key(config) if key is None else key)
     model = build_model(
-        config, key=model_key, frustum=dataset.frustum, white_background=dataset.white_background
+        config,
+        key=model_key,
+        frustum=dataset.frustum,
+        white_background=dataset.white_background,
+        scene_box=scene_box(dataset),
     )
     optim = config.optim
     horizon = optim.decay_steps or config.train.max_steps
@@ -216,7 +227,13 @@ def make_train_step(
             loss_cfg.lambda_colour_end,
             loss_cfg.lambda_colour_steps,
         )
-        (_, terms), grads = eqx.filter_value_and_grad(loss_fn, has_aux=True)(
+        def scheduled_loss(model: MixNeRF, *args, **kwargs):
+            # The field as this step sees it (a grid's coarse-to-fine levels); the stored
+            # model keeps the whole field.
+            model = eqx.tree_at(lambda m: m.field, model, model.field.at_step(step_number))
+            return loss_fn(model, *args, **kwargs)
+
+        (_, terms), grads = eqx.filter_value_and_grad(scheduled_loss, has_aux=True)(
             state.model, rays, batch.rgb, lambda_colour, weights, key=_step_keys(state)[1]
         )
         params = eqx.filter(state.model, eqx.is_array)

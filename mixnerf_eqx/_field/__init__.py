@@ -1,3 +1,9 @@
 from .base import AbstractField as AbstractField
 from .base import FieldOutputs as FieldOutputs
+from .grid import AbstractGridEncoding as AbstractGridEncoding
+from .grid import GridField as GridField
+from .grid import HashEncoding as HashEncoding
+from .grid import TriPlaneEncoding as TriPlaneEncoding
+from .grid import level_resolutions as level_resolutions
+from .grid import level_scale_weights as level_scale_weights
 from .mip_mlp import MipNeRFField as MipNeRFField

@@ -1,7 +1,8 @@
 import abc
 
 import equinox as eqx
-from jaxtyping import Array, Float
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
 
 from .._custom_types import PRNGKey, Vec3
 
@@ -31,6 +32,19 @@ class AbstractField(eqx.Module):
     def has_mixture_heads(self) -> bool:
         """Whether the field predicts `beta` and `ray_depth` (needed by the mixture losses)."""
 
+    def regulariser(self) -> Float[Array, ""]:
+        """The field's own term of the training loss, already weighted (0: none)."""
+        return jnp.zeros(())
+
+    def at_step(self, step: Int[Array, ""] | int) -> "AbstractField":
+        """The field as training step `step` (from 1) sees it; the field itself by default.
+
+        A field with a schedule (a grid revealing its levels coarse to fine) returns a copy
+        whose schedule-dependent arrays are set for `step`; the training step calls this
+        before rendering, and stored models keep the fully revealed field.
+        """
+        return self
+
     @abc.abstractmethod
     def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
         """The noise-free density at one Gaussian, without the view-dependent branch.
@@ -50,3 +64,10 @@ class AbstractField(eqx.Module):
         - `key`: randomness for training-time regularisation (density noise); `None` at
           evaluation.
         """
+
+
+def safe_norm(vector: Vec3) -> Float[Array, ""]:
+    """The Euclidean norm of a 3-vector, with a gradient that stays finite at zero."""
+    squared = jnp.sum(vector**2)
+    safe = jnp.where(squared > 0, squared, 1.0)
+    return jnp.where(squared > 0, jnp.sqrt(safe), 0.0)

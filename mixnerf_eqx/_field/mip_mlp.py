@@ -7,7 +7,7 @@ from jaxtyping import Array, Float
 
 from .._custom_types import PRNGKey, Vec3
 from .._encoding import integrated_positional_encoding, positional_encoding
-from .base import AbstractField, FieldOutputs
+from .base import AbstractField, FieldOutputs, safe_norm
 
 
 def _dense(in_size: int, out_size: int, *, key: PRNGKey) -> eqx.nn.Linear:
@@ -159,9 +159,5 @@ class MipNeRFField(AbstractField):
         beta = ray_depth = None
         if self.beta_head is not None and self.depth_head is not None:
             beta = jax.nn.softplus(self._dense(self.beta_head, hidden))
-            depth_vector = self._dense(self.depth_head, hidden)
-            # The norm of a 3-vector, with a gradient that stays finite at zero.
-            squared = jnp.sum(depth_vector**2)
-            safe = jnp.where(squared > 0, squared, 1.0)
-            ray_depth = jnp.where(squared > 0, jnp.sqrt(safe), 0.0)
+            ray_depth = safe_norm(self._dense(self.depth_head, hidden))
         return FieldOutputs(density=density, rgb=rgb, beta=beta, ray_depth=ray_depth)

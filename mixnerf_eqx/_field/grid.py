@@ -1,0 +1,376 @@
+"""A grid field: multi-resolution features looked up in a grid, decoded by a small MLP.
+
+Two encodings share one decoder (`GridField`):
+
+- `TriPlaneEncoding`: at each level three feature planes (normal to x, y and z), each
+  sampled bilinearly at the point's projection and multiplied together, as K-Planes does
+  for a static scene. A plane holds `resolution^2` texels, so a level of resolution 256 costs
+  what a 3D grid of resolution 40 does, and total variation on the planes is the natural
+  smoothness prior for a few views.
+- `HashEncoding`: instant-ngp's multi-resolution hash grid: at each level the eight corners
+  of the point's cell, hashed into a table where the level has more corners than the table
+  has entries, interpolated trilinearly.
+
+Both map a point of the scene's box to `[-1, 1]^3` first. The frustum's scale enters as
+Zip-NeRF weights its grid levels: a level whose cells are much smaller than the frustum
+Gaussian's standard deviation would alias, so its features are scaled by
+`erf(cell / (sqrt(8) sigma))`, the factor by which blurring the level with the Gaussian damps
+its finest detail; `sigma` is the root mean of the covariance diagonal in the box's units.
+"""
+
+import abc
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from .._custom_types import PRNGKey, Vec3
+from .._encoding import positional_encoding
+from .base import AbstractField, FieldOutputs, safe_norm
+from .mip_mlp import _dense
+
+# instant-ngp's spatial hash primes (the first is 1, so x needs no multiplication).
+_HASH_PRIMES = (1, 2654435761, 805459861)
+
+
+def level_resolutions(levels: int, min_resolution: int, max_resolution: int) -> tuple[int, ...]:
+    """Resolutions growing geometrically from `min_resolution` to `max_resolution`."""
+    if levels < 1 or min_resolution < 2 or max_resolution < min_resolution:
+        raise ValueError(
+            f"need levels >= 1 and 2 <= min_resolution <= max_resolution, got {levels}, "
+            f"{min_resolution}, {max_resolution}"
+        )
+    if levels == 1:
+        return (max_resolution,)
+    growth = (max_resolution / min_resolution) ** (1 / (levels - 1))
+    return tuple(int(round(min_resolution * growth**level)) for level in range(levels))
+
+
+class AbstractGridEncoding(eqx.Module):
+    """Features of a point of `[-1, 1]^3` at several resolutions, one row per level."""
+
+    resolutions: eqx.AbstractVar[tuple[int, ...]]
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.resolutions)
+
+    @property
+    @abc.abstractmethod
+    def features_per_level(self) -> int:
+        """The width of one level's row."""
+
+    @property
+    @abc.abstractmethod
+    def cell_sizes(self) -> tuple[float, ...]:
+        """Each level's cell size in the units of `[-1, 1]`."""
+
+    @abc.abstractmethod
+    def __call__(self, point: Vec3) -> Float[Array, "levels features"]:
+        """The features of one point (coordinates outside `[-1, 1]` are clamped)."""
+
+    def total_variation(self) -> Float[Array, ""]:
+        """Mean squared difference of neighbouring grid values, summed over levels (0 if the
+        encoding has no neighbourhood structure to regularise)."""
+        return jnp.zeros(())
+
+
+def _plane_lookup(
+    planes: Float[Array, "3 _res _res features"], point: Vec3
+) -> Float[Array, "3 features"]:
+    """Each of a level's three planes sampled bilinearly (corners aligned) at the point's
+    projection onto it: plane `k` at the two coordinates other than `k`, the first along its
+    columns.
+
+    The twelve texels are gathered at once from the flattened planes, each a contiguous row
+    of features, so the backward pass is one scatter per level.
+    """
+    res = planes.shape[1]
+    scaled = (jnp.clip(point, -1.0, 1.0) + 1.0) * 0.5 * (res - 1)
+    low = jnp.clip(jnp.floor(scaled), 0, res - 2).astype(jnp.int32)
+    frac = scaled - low
+    # (column axis, row axis) of each plane.
+    axes = ((1, 2), (0, 2), (0, 1))
+    indices, weights = [], []
+    for plane, (u, v) in enumerate(axes):
+        first = (plane * res + low[v]) * res + low[u]
+        indices.append(jnp.stack([first, first + 1, first + res, first + res + 1]))
+        fu, fv = frac[u], frac[v]
+        weights.append(jnp.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv]))
+    texels = planes.reshape(3 * res * res, -1)[jnp.stack(indices)]
+    return jnp.einsum("pc,pcf->pf", jnp.stack(weights), texels)
+
+
+class TriPlaneEncoding(AbstractGridEncoding):
+    """K-Planes' static-scene factorisation: per level, the product of three planes' features.
+
+    Plane `k` of a level is normal to axis `k`: plane 0 is indexed by (y, z), plane 1 by
+    (x, z), plane 2 by (x, y), the first coordinate along its columns. The planes start
+    uniform in `[0.1, 0.5]` (K-Planes' initialisation), so products start well away from zero.
+    """
+
+    planes: tuple[Float[Array, "3 _res _res features"], ...]
+    resolutions: tuple[int, ...] = eqx.field(static=True)
+
+    def __init__(self, resolutions: tuple[int, ...], features: int, *, key: PRNGKey):
+        if features < 1 or any(res < 2 for res in resolutions):
+            raise ValueError(f"need features >= 1 and resolutions >= 2, got {features}, {resolutions}")
+        keys = jax.random.split(key, len(resolutions))
+        self.planes = tuple(
+            jax.random.uniform(k, (3, res, res, features), minval=0.1, maxval=0.5)
+            for k, res in zip(keys, resolutions, strict=True)
+        )
+        self.resolutions = tuple(resolutions)
+
+    @property
+    def features_per_level(self) -> int:
+        return self.planes[0].shape[-1]
+
+    @property
+    def cell_sizes(self) -> tuple[float, ...]:
+        return tuple(2.0 / (res - 1) for res in self.resolutions)
+
+    def __call__(self, point: Vec3) -> Float[Array, "levels features"]:
+        return jnp.stack([jnp.prod(_plane_lookup(planes, point), axis=0) for planes in self.planes])
+
+    def total_variation(self) -> Float[Array, ""]:
+        total = jnp.zeros(())
+        for planes in self.planes:
+            total = total + jnp.mean((planes[:, 1:] - planes[:, :-1]) ** 2)
+            total = total + jnp.mean((planes[:, :, 1:] - planes[:, :, :-1]) ** 2)
+        return total
+
+
+def hash_corner_index(corner: Int[Array, "3"], resolution: int, table_size: int) -> Int[Array, ""]:
+    """The table entry of an integer grid corner at one level.
+
+    A level with at most `table_size` corners indexes them one to one (x fastest); a finer
+    level XORs the coordinates times instant-ngp's primes, modulo the table size.
+    """
+    side = resolution + 1
+    if side**3 <= table_size:
+        return corner[0] + side * (corner[1] + side * corner[2])
+    unsigned = corner.astype(jnp.uint32)
+    hashed = unsigned[0] * jnp.uint32(_HASH_PRIMES[0])
+    hashed = hashed ^ (unsigned[1] * jnp.uint32(_HASH_PRIMES[1]))
+    hashed = hashed ^ (unsigned[2] * jnp.uint32(_HASH_PRIMES[2]))
+    return (hashed % jnp.uint32(table_size)).astype(jnp.int32)
+
+
+# The eight corners of a cell, as offsets from its lowest corner.
+_CORNERS = tuple((dx, dy, dz) for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
+
+
+class HashEncoding(AbstractGridEncoding):
+    """instant-ngp's multi-resolution hash encoding, trilinearly interpolated.
+
+    Level `l` has `resolution_l` cells per axis; its table holds `min(table_size,
+    (resolution_l + 1)^3)` entries, initialised uniform in `[-1e-4, 1e-4]` as instant-ngp does.
+    """
+
+    tables: tuple[Float[Array, "_entries features"], ...]
+    resolutions: tuple[int, ...] = eqx.field(static=True)
+    table_size: int = eqx.field(static=True)
+
+    def __init__(self, resolutions: tuple[int, ...], features: int, table_size: int, *, key: PRNGKey):
+        if features < 1 or table_size < 8 or any(res < 1 for res in resolutions):
+            raise ValueError(
+                f"need features >= 1, table_size >= 8, resolutions >= 1; got {features}, {table_size}, "
+                f"{resolutions}"
+            )
+        keys = jax.random.split(key, len(resolutions))
+        self.tables = tuple(
+            jax.random.uniform(k, (min(table_size, (res + 1) ** 3), features), minval=-1e-4, maxval=1e-4)
+            for k, res in zip(keys, resolutions, strict=True)
+        )
+        self.resolutions = tuple(resolutions)
+        self.table_size = table_size
+
+    @property
+    def features_per_level(self) -> int:
+        return self.tables[0].shape[1]
+
+    @property
+    def cell_sizes(self) -> tuple[float, ...]:
+        return tuple(2.0 / res for res in self.resolutions)
+
+    def __call__(self, point: Vec3) -> Float[Array, "levels features"]:
+        unit = (jnp.clip(point, -1.0, 1.0) + 1.0) * 0.5
+        rows = []
+        for table, res in zip(self.tables, self.resolutions, strict=True):
+            scaled = unit * res
+            low = jnp.clip(jnp.floor(scaled), 0, res - 1).astype(jnp.int32)
+            frac = scaled - low
+            row = jnp.zeros(table.shape[1:], table.dtype)
+            for offset in _CORNERS:
+                corner = low + jnp.asarray(offset, jnp.int32)
+                weight = jnp.prod(jnp.where(jnp.asarray(offset) == 1, frac, 1 - frac))
+                row = row + weight * table[hash_corner_index(corner, res, table.shape[0])]
+            rows.append(row)
+        return jnp.stack(rows)
+
+
+def level_scale_weights(
+    cov: Vec3, half_extent: Vec3, cell_sizes: tuple[float, ...]
+) -> Float[Array, "levels"]:
+    """Zip-NeRF's per-level weights `erf(cell / (sqrt(8) sigma))` for one frustum Gaussian.
+
+    `sigma` is the root mean of `cov / half_extent^2`, the Gaussian's standard deviation in
+    the units of `[-1, 1]^3`. A point (zero covariance) weights every level 1.
+    """
+    sigma = jnp.sqrt(jnp.mean(cov / half_extent**2))
+    cells = jnp.asarray(cell_sizes, cov.dtype)
+    return jax.scipy.special.erf(cells / jnp.maximum(math.sqrt(8.0) * sigma, 1e-12))
+
+
+class GridField(AbstractField):
+    """A grid encoding and a small decoder, with MixNeRF's heads placed as in the MLP field.
+
+    The density branch maps the weighted, flattened levels through one ReLU layer of
+    `decoder_width` to the raw density and `geo_features` features; the colour branch joins
+    those features with the encoded view direction in one ReLU layer of `view_width`, from
+    which the colour, `beta = softplus(Dense(3))` and `ray_depth = ||Dense(3)||` come (the
+    MLP field's heads, so MixNeRF's mixture and losses work unchanged).
+
+    **Fields:**
+
+    - `encoding`: the grid encoding.
+    - `level_weights`: the coarse-to-fine mask over levels, all ones in a stored model; the
+      training step replaces it (`at_step`), so it is never trained.
+    - `box_min`, `box_max` (static): the box mapped to `[-1, 1]^3`.
+    - `bounded` (static): the scene lies inside the box, so the density outside it is zero;
+      otherwise points outside take the features of the box's surface.
+    - `scale_weighting` (static): weight levels by the frustum's scale (Zip-NeRF).
+    - `tv_weight` (static): weight of the encoding's total variation in the loss.
+    - `coarse_to_fine_steps` (static): steps over which the levels are revealed one after
+      another, coarsest first (0: all from the start).
+    - `density_noise`, `density_bias`, `rgb_padding`, `viewdir_max_deg` (static): as in
+      `MipNeRFField`.
+    """
+
+    encoding: AbstractGridEncoding
+    density_layer: eqx.nn.Linear
+    density_out: eqx.nn.Linear
+    view_layer: eqx.nn.Linear
+    rgb_head: eqx.nn.Linear
+    beta_head: eqx.nn.Linear | None
+    depth_head: eqx.nn.Linear | None
+    level_weights: Float[Array, "levels"]
+    box_min: tuple[float, float, float] = eqx.field(static=True)
+    box_max: tuple[float, float, float] = eqx.field(static=True)
+    bounded: bool = eqx.field(static=True)
+    scale_weighting: bool = eqx.field(static=True)
+    tv_weight: float = eqx.field(static=True)
+    coarse_to_fine_steps: int = eqx.field(static=True)
+    density_noise: float = eqx.field(static=True)
+    density_bias: float = eqx.field(static=True)
+    rgb_padding: float = eqx.field(static=True)
+    viewdir_max_deg: int = eqx.field(static=True)
+
+    def __init__(
+        self,
+        encoding: AbstractGridEncoding,
+        *,
+        box_min: tuple[float, float, float],
+        box_max: tuple[float, float, float],
+        bounded: bool,
+        decoder_width: int = 64,
+        geo_features: int = 15,
+        view_width: int = 64,
+        viewdir_max_deg: int = 4,
+        scale_weighting: bool = True,
+        tv_weight: float = 0.0,
+        coarse_to_fine_steps: int = 0,
+        density_noise: float = 0.0,
+        density_bias: float = -1.0,
+        rgb_padding: float = 0.001,
+        mixture_heads: bool = True,
+        key: PRNGKey,
+    ):
+        box_min = tuple(float(v) for v in box_min)
+        box_max = tuple(float(v) for v in box_max)
+        if (
+            len(box_min) != 3
+            or len(box_max) != 3
+            or any(lo >= hi for lo, hi in zip(box_min, box_max, strict=True))
+        ):
+            raise ValueError(f"the box must have three sides of positive length, got {box_min}, {box_max}")
+        if decoder_width < 1 or view_width < 1 or geo_features < 0:
+            raise ValueError("decoder_width and view_width must be positive and geo_features >= 0")
+        view_size = 3 + 2 * 3 * viewdir_max_deg
+        keys = iter(jax.random.split(key, 6))
+        in_size = encoding.num_levels * encoding.features_per_level
+        self.encoding = encoding
+        self.density_layer = _dense(in_size, decoder_width, key=next(keys))
+        self.density_out = _dense(decoder_width, 1 + geo_features, key=next(keys))
+        self.view_layer = _dense(geo_features + view_size, view_width, key=next(keys))
+        self.rgb_head = _dense(view_width, 3, key=next(keys))
+        self.beta_head = _dense(view_width, 3, key=next(keys)) if mixture_heads else None
+        self.depth_head = _dense(view_width, 3, key=next(keys)) if mixture_heads else None
+        self.level_weights = jnp.ones(encoding.num_levels)
+        self.box_min = box_min
+        self.box_max = box_max
+        self.bounded = bounded
+        self.scale_weighting = scale_weighting
+        self.tv_weight = tv_weight
+        self.coarse_to_fine_steps = coarse_to_fine_steps
+        self.density_noise = density_noise
+        self.density_bias = density_bias
+        self.rgb_padding = rgb_padding
+        self.viewdir_max_deg = viewdir_max_deg
+
+    @property
+    def has_mixture_heads(self) -> bool:
+        return self.beta_head is not None and self.depth_head is not None
+
+    def at_step(self, step: Int[Array, ""] | int) -> "GridField":
+        """The field as training step `step` (from 1) sees it: level `l` (coarsest 0) is
+        weighted `clip(1 + (levels - 1) step / coarse_to_fine_steps - l, 0, 1)`."""
+        if self.coarse_to_fine_steps <= 0:
+            return self
+        levels = self.encoding.num_levels
+        progress = jnp.clip(jnp.asarray(step, jnp.float32) / self.coarse_to_fine_steps, 0.0, 1.0)
+        visible = 1.0 + (levels - 1) * progress
+        mask = jnp.clip(visible - jnp.arange(levels, dtype=jnp.float32), 0.0, 1.0)
+        return eqx.tree_at(lambda f: f.level_weights, self, mask)
+
+    def regulariser(self) -> Float[Array, ""]:
+        if self.tv_weight == 0:
+            return jnp.zeros(())
+        return self.tv_weight * self.encoding.total_variation()
+
+    def _density_branch(self, mean: Vec3, cov: Vec3) -> tuple[Float[Array, ""], Float[Array, "features"]]:
+        """The raw density (before noise and activation) and the geometry features."""
+        low, high = jnp.asarray(self.box_min), jnp.asarray(self.box_max)
+        half = 0.5 * (high - low)
+        point = (mean - (low + half)) / half
+        rows = self.encoding(point)
+        weights = jax.lax.stop_gradient(self.level_weights)
+        if self.scale_weighting:
+            weights = weights * level_scale_weights(cov, half, self.encoding.cell_sizes)
+        hidden = jax.nn.relu(self.density_layer((rows * weights[:, None]).reshape(-1)))
+        out = self.density_out(hidden)
+        raw = out[0] + self.density_bias
+        if self.bounded:
+            # Nothing lies outside the box: a large negative raw density gives zero density.
+            raw = jnp.where(jnp.all(jnp.abs(point) <= 1.0), raw, -1e4)
+        return raw, out[1:]
+
+    def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
+        return jax.nn.softplus(self._density_branch(mean, cov)[0])
+
+    def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
+        raw_density, geometry = self._density_branch(mean, cov)
+        if key is not None and self.density_noise > 0:
+            raw_density = raw_density + self.density_noise * jax.random.normal(key, (), raw_density.dtype)
+        density = jax.nn.softplus(raw_density)
+        view_features = positional_encoding(viewdir, 0, self.viewdir_max_deg, append_identity=True)
+        hidden = jax.nn.relu(self.view_layer(jnp.concatenate([geometry, view_features])))
+        rgb = jax.nn.sigmoid(self.rgb_head(hidden)) * (1 + 2 * self.rgb_padding) - self.rgb_padding
+        beta = ray_depth = None
+        if self.beta_head is not None and self.depth_head is not None:
+            beta = jax.nn.softplus(self.beta_head(hidden))
+            ray_depth = safe_norm(self.depth_head(hidden))
+        return FieldOutputs(density=density, rgb=rgb, beta=beta, ray_depth=ray_depth)
