@@ -1,0 +1,163 @@
+"""The sweep: its plan, its table's arithmetic, resuming, and runs on submitit's local executor."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import TINY_OVERRIDES
+
+import mixnerf_eqx as mx
+from mixnerf_eqx import sweep
+from mixnerf_eqx._sweep import aggregate, format_markdown, plan_sweep, published_numbers
+from mixnerf_eqx.data import llff
+
+# A sweep of the tiny model that trains in seconds; its runs stop at 8 steps.
+SWEEP_OVERRIDES = [o for o in TINY_OVERRIDES if not o.startswith("train.max_steps")] + [
+    "train.max_steps=8",
+    "data.num_test_views=2",
+]
+
+
+def test_the_plan_covers_the_benchmark_with_every_seed(tmp_path):
+    config = mx.load_config("configs/llff3.toml")
+    runs = plan_sweep(config, tmp_path, seeds=[0, 3])
+    assert [(run.scene, run.seed) for run in runs] == [
+        (scene, seed) for scene in llff.SCENES for seed in (0, 3)
+    ]
+    assert len({run.run_dir for run in runs}) == len(runs)
+    assert all(run.config.data.scene == run.scene and run.config.train.seed == run.seed for run in runs)
+    assert runs[-1].run_dir == tmp_path / "trex" / "seed_3"
+    with pytest.raises(mx.ConfigError, match="listed once"):
+        plan_sweep(config, tmp_path, scenes=["fern", "fern"])
+
+
+def test_published_numbers_are_read_from_the_reproduces_line():
+    config = mx.load_config("configs/llff3.toml")
+    assert published_numbers(config.reproduces) == {"psnr": 19.27, "ssim": 0.629, "lpips": 0.236}
+    assert published_numbers("none (quick start)") == {}
+
+
+def test_the_table_is_the_mean_over_scenes_and_its_spread_over_seeds(tmp_path):
+    config = mx.load_config("configs/llff3.toml")
+    runs = plan_sweep(config, tmp_path, scenes=["fern", "horns"], seeds=[0, 1, 2])
+    psnr = {("fern", 0): 20.0, ("fern", 1): 21.0, ("fern", 2): 22.5, ("horns", 0): 18.0, ("horns", 1): 17.0}
+    results = {
+        key: {"step": 1, "scene": key[0], "test": {"psnr": value, "ssim": 0.5}} for key, value in psnr.items()
+    }
+    table = aggregate(config, runs, results)
+    # Per scene: mean and sample standard deviation over the seeds that finished it.
+    assert table["per_scene"]["fern"]["psnr"]["mean"] == pytest.approx(21.166666666)
+    assert table["per_scene"]["fern"]["psnr"]["std"] == pytest.approx(np.std([20.0, 21.0, 22.5], ddof=1))
+    assert table["per_scene"]["horns"]["psnr"]["n"] == 2
+    # Over scenes: the per-seed means of the seeds that finished every scene (0 and 1).
+    assert table["complete_seeds"] == [0, 1]
+    assert table["mean"]["psnr"]["per_seed"] == [19.0, 19.0]
+    assert table["mean"]["psnr"]["std"] == 0.0
+    assert table["mean"]["lpips"] is None
+    assert table["missing"] == ["horns seed 2"]
+    markdown = format_markdown(table)
+    assert "| fern | 21.17 ± 1.26 | 0.500 ± 0.000 | n/a | n/a |" in markdown
+    assert "| **mean of 2 scenes** | 19.00 ± 0.00 |" in markdown
+    assert "| published | 19.27 | 0.629 | 0.236 |  |" in markdown
+    assert "Only 2 of the benchmark's 8 scenes" in markdown and "Not finished: horns seed 2." in markdown
+
+
+def _import_submitit(monkeypatch):
+    # Importing submitit configures logging with `logging.config.dictConfig`, which closes the
+    # handlers pytest captures logs with; NOCONFIG leaves logging as it is.
+    monkeypatch.setenv("SUBMITIT_LOG_LEVEL", "NOCONFIG")
+    return pytest.importorskip("submitit")
+
+
+def _sweep_arguments(out, *extra):
+    return ["--seeds", "0,1", "--out", str(out), "--no-progress", *extra, *SWEEP_OVERRIDES]
+
+
+def test_a_sweep_resumes_what_is_unfinished_and_reads_what_is_finished(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    config = mx.load_config("configs/builtin.toml", SWEEP_OVERRIDES)
+    seed_1 = plan_sweep(config, out, seeds=[0, 1])[1]
+    # Seed 1 was stopped after 3 steps (a checkpoint, no metrics): the sweep continues it.
+    mx.fit(seed_1.config, progress=False, stop_after=3)
+    assert sweep.main(_sweep_arguments(out)) == 0
+    log = [json.loads(line) for line in (seed_1.run_dir / "train_log.jsonl").read_text().splitlines()]
+    assert [entry["step"] for entry in log if "loss" in entry] == [3, 8]
+    table = json.loads((out / "table.json").read_text())
+    assert [(run["scene"], run["seed"], run["step"]) for run in table["runs"]] == [
+        ("builtin", 0, 8),
+        ("builtin", 1, 8),
+    ]
+    metrics = [
+        json.loads((out / "builtin" / f"seed_{s}" / "metrics.json").read_text())["test"] for s in (0, 1)
+    ]
+    assert table["mean"]["psnr"]["per_seed"] == [metrics[0]["psnr"], metrics[1]["psnr"]]
+    assert table["mean"]["psnr"]["std"] == pytest.approx(np.std([m["psnr"] for m in metrics], ddof=1))
+    assert (out / "table.md").read_text().startswith("# builtin")
+    # Again: both runs are finished and only read (their checkpoints are not touched).
+    stamps = {path: path.stat().st_mtime_ns for path in out.rglob("checkpoints/*/state.eqx")}
+    capsys.readouterr()
+    assert sweep.main(_sweep_arguments(out)) == 0
+    printed = capsys.readouterr().out
+    assert "[1/2] builtin, seed 0: finished" in printed and "[2/2] builtin, seed 1: finished" in printed
+    assert stamps == {path: path.stat().st_mtime_ns for path in out.rglob("checkpoints/*/state.eqx")}
+    # A sweep folder of other settings is refused as a whole, naming the run and the setting.
+    assert sweep.main(_sweep_arguments(out, "loss.lambda_depth=0.5")) == 2
+    error = capsys.readouterr().err
+    assert "seed_0 was written with different settings (loss.lambda_depth: 0.001 -> 0.5)" in error
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--seeds", "a,b"], "--seeds must be comma-separated integers"),
+        (["--seeds", "-1"], "--seeds must list non-negative integers"),
+        (["--config", "configs/nothing.toml"], "does not exist"),
+        (["--engine", "submitit", "--timeout-min", "0"], "--timeout-min must be positive"),
+    ],
+)
+def test_the_sweep_refuses_meaningless_arguments(tmp_path, arguments, message, capsys, monkeypatch):
+    if "submitit" in arguments:
+        _import_submitit(monkeypatch)
+    assert sweep.main(["--out", str(tmp_path), *arguments]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("error: ") and message in error and "\n" not in error
+
+
+def test_missing_scene_files_fail_that_run_only(tmp_path, capsys):
+    arguments = [
+        "--config",
+        "configs/llff3.toml",
+        "--scenes",
+        "fern",
+        "--data-dir",
+        str(tmp_path),
+        "--out",
+        str(tmp_path / "s"),
+    ]
+    assert sweep.main(arguments) == 1
+    table = json.loads((tmp_path / "s" / "table.json").read_text())
+    assert "fern" in table["failed"]["fern seed 0"] and table["missing"] == ["fern seed 0"]
+
+
+def test_a_sweep_on_submitits_local_executor(tmp_path, monkeypatch):
+    _import_submitit(monkeypatch)
+    out = tmp_path / "jobs_sweep"
+    arguments = [
+        "--engine",
+        "submitit",
+        "--cluster",
+        "local",
+        "--seeds",
+        "0",
+        "--out",
+        str(out),
+        "--timeout-min",
+        "10",
+    ]
+    assert sweep.main([*arguments, *SWEEP_OVERRIDES]) == 0
+    table = json.loads((out / "table.json").read_text())
+    # The job trained and evaluated the run in its own process, in the run's folder.
+    run = table["runs"][0]
+    assert run["step"] == 8
+    assert json.loads((out / "builtin" / "seed_0" / "metrics.json").read_text())["test"] == run["test"]
+    assert list((out / "jobs").glob("*_result.pkl"))
