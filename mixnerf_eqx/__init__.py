@@ -15,6 +15,9 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._calibrate import calibrate_threshold as calibrate_threshold
     from ._calibrate import calibration_rays as calibration_rays
     from ._calibrate import psnr_drop_bound as psnr_drop_bound
+    from ._camera_path import camera_path as camera_path
+    from ._camera_path import orbit_path as orbit_path
+    from ._camera_path import spiral_path as spiral_path
     from ._checkpoint import CheckpointError as CheckpointError
     from ._checkpoint import latest_checkpoint as latest_checkpoint
     from ._checkpoint import load_checkpoint as load_checkpoint
@@ -89,9 +92,13 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._schedule import anneal_sample_space as anneal_sample_space
     from ._schedule import learning_rate_schedule as learning_rate_schedule
     from ._schedule import linear_ramp as linear_ramp
+    from ._sharding import DataParallel as DataParallel
+    from ._sharding import data_parallel_mesh as data_parallel_mesh
+    from ._sharding import initialize_distributed as initialize_distributed
     from ._skipping import RenderCounts as RenderCounts
     from ._skipping import Skipping as Skipping
     from ._skipping import render_skipping as render_skipping
+    from ._sweep import plan_sweep as plan_sweep
     from ._train import TrainingDiverged as TrainingDiverged
     from ._train import TrainResult as TrainResult
     from ._train import fit as fit
@@ -118,3 +125,5 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._uncertainty import predict_rays as predict_rays
     from ._uncertainty import predict_views as predict_views
     from ._uncertainty import sparsification as sparsification
+    from ._video import Video as Video
+    from ._video import render_video as render_video
