@@ -27,19 +27,23 @@ from jaxtyping import Array, Float
 
 from ._custom_types import RGB, Edges, PerSample, PerSampleRGB, ScalarLike
 from ._mixture import LaplaceMixture
+from ._mixture.laplace import laplace_log_density
 from ._model import MixNeRF
 from ._rays import RayBundle
 from ._render import depth_quantile, expected_depth
 from ._renderer import LevelOutputs
 
-# A bisection halves its bracket each step: after 48 halvings the answer lies within 4e-15 of
-# the bracket's width, below float32's resolution for any bracket narrower than about 1e7 times
-# the answer. The tolerance on the residual is rarely met exactly in float32, so in practice the
-# solves run to this count (in a batch they run until the slowest is done anyway).
-_BISECTION_STEPS = 48
+# A bisection halves its bracket each step: after 32 halvings the answer lies within 2.3e-10
+# of the bracket's width, below float32's resolution around an answer of size 0.5 for any
+# bracket narrower than about 100 (colours bracket themselves within a few units). The
+# tolerance on the residual is rarely met exactly in float32, so in practice the solves run to
+# this count (in a batch they run until the slowest is done anyway).
+_BISECTION_STEPS = 32
 _TOLERANCE = 1e-7
 # Each sweep of the mode search strictly raises the density or ends it; few are ever needed.
 _MODE_SWEEPS = 16
+# The relative gain in log density below which the mode search stops moving.
+_MODE_GAIN = 1e-6
 # `depth_quantile`'s tolerance, so that the batched depth quantiles agree with it.
 _DEPTH_TOLERANCE = 1e-6
 
@@ -80,7 +84,16 @@ def channel_cdf(
     x: Float[Array, ""], coefficients: PerSample, location: PerSample, scale: PerSample
 ) -> Float[Array, ""]:
     """One colour channel's mixture distribution function `sum_j pi_j F_j(x)`."""
-    return jnp.sum(coefficients * laplace_cdf(x, location, scale))
+    return _channel_cdf(x, coefficients, location, _inverse_scale(scale))
+
+
+def _channel_cdf(
+    x: Float[Array, ""], coefficients: PerSample, location: PerSample, inverse_scale: PerSample
+) -> Float[Array, ""]:
+    # With the inverse scales formed once, outside a solve's loop: one exponential per
+    # component and step.
+    tail = 0.5 * jnp.exp(-jnp.abs(x - location) * inverse_scale)
+    return jnp.sum(coefficients * jnp.where(x < location, tail, 1.0 - tail))
 
 
 def channel_quantile(
@@ -100,14 +113,14 @@ def channel_quantile(
     upper = jnp.max(jnp.where(present, component, -jnp.inf))
 
     def residual(x, args):
-        level, coefficients, location, scale = args
-        return channel_cdf(x, coefficients, location, scale) - level
+        level, coefficients, location, inverse_scale = args
+        return _channel_cdf(x, coefficients, location, inverse_scale) - level
 
     solution = optx.root_find(
         residual,
         optx.Bisection(rtol=_TOLERANCE, atol=_TOLERANCE, flip=False),
         lower + 0.5 * (upper - lower),
-        args=(level, coefficients, location, scale),
+        args=(level, coefficients, location, _inverse_scale(scale)),
         options=dict(lower=lower, upper=upper),
         max_steps=_BISECTION_STEPS,
         throw=False,
@@ -120,9 +133,7 @@ def joint_log_density(
 ) -> Float[Array, ""]:
     """`log sum_j pi_j prod_c Laplace(rgb_c; mu_jc, beta_jc)`, the density the colour NLL
     scores (eqs. 4-6); `-inf` nowhere a component has mass and the scales are finite."""
-    log_scale = jnp.log(jnp.maximum(scale, jnp.finfo(scale.dtype).tiny))
-    residual = jnp.maximum(-jnp.abs(rgb - location) * jnp.exp(-log_scale), -1e30)
-    component = jnp.sum(residual - log_scale - jnp.log(2.0), axis=-1)
+    component = jnp.sum(laplace_log_density(rgb, location, scale), axis=-1)
     present = coefficients > 0
     terms = jnp.where(present, jnp.log(jnp.where(present, coefficients, 1.0)) + component, -jnp.inf)
     return jax.scipy.special.logsumexp(terms)
@@ -136,10 +147,6 @@ class _ModeSearch(eqx.Module):
     inverse_scale: PerSampleRGB
     distances: Float[Array, "channels num_samples num_samples"]
 
-    def log_density(self, rgb: RGB) -> Float[Array, ""]:
-        exponent = jnp.sum(jnp.maximum(-jnp.abs(rgb - self.location) * self.inverse_scale, -1e30), axis=-1)
-        return jax.scipy.special.logsumexp(self.log_weight + exponent)
-
     def sweep(self, rgb: RGB, args: None) -> RGB:
         """One sweep of exact coordinate ascent: each channel in turn moves to the component
         location, in that channel, where the density (the other channels held) is highest."""
@@ -152,8 +159,10 @@ class _ModeSearch(eqx.Module):
             candidates = jax.scipy.special.logsumexp(held[None, :] - self.distances[channel], axis=-1)
             here = jax.scipy.special.logsumexp(held + exponent[:, channel])
             best = jnp.argmax(candidates)
-            # Stay put unless a candidate is strictly better, so that a fixed point is reached.
-            rgb = jnp.where(candidates[best] > here, rgb.at[channel].set(self.location[best, channel]), rgb)
+            # Move only for a gain above float32's rounding of the log density, so that a
+            # fixed point is reached rather than a cycle between two equally dense points.
+            gain = candidates[best] - here > _MODE_GAIN * (1.0 + jnp.abs(here))
+            rgb = jnp.where(gain, rgb.at[channel].set(self.location[best, channel]), rgb)
         return rgb
 
 
@@ -518,7 +527,7 @@ class PredictiveSummary(eqx.Module):
     - `masses` (static): the masses of the central intervals, in the order of the leading
       axis of `colour_lower`, `colour_upper`, `depth_lower` and `depth_upper`.
     - `colour_mean`, `colour_median`, `colour_std`: per channel, of the colour mixture.
-    - `colour_mode`: the mode of the joint RGB density.
+    - `colour_mode`: the mode of the joint RGB density (`None` unless asked for).
     - `colour_lower`, `colour_upper`: per channel, the central intervals.
     - `coefficient_entropy`: of the mixing coefficients, in nats.
     - `depth_mean`, `depth_median`, `depth_std`, `depth_lower`, `depth_upper`: of the
@@ -531,7 +540,7 @@ class PredictiveSummary(eqx.Module):
     colour_mean: Float[Array, "*batch channels"]
     colour_median: Float[Array, "*batch channels"]
     colour_std: Float[Array, "*batch channels"]
-    colour_mode: Float[Array, "*batch channels"]
+    colour_mode: Float[Array, "*batch channels"] | None
     colour_lower: Float[Array, "_ *batch channels"]
     colour_upper: Float[Array, "_ *batch channels"]
     coefficient_entropy: Float[Array, "*batch"]
@@ -553,9 +562,13 @@ def summarise(
     prediction: Predictive,
     masses: tuple[float, ...] = DEFAULT_MASSES,
     targets: Float[Array, "*batch channels"] | None = None,
+    *,
+    with_mode: bool = False,
 ) -> PredictiveSummary:
-    """Every summary of `prediction` (one quantile solve per channel and level, one mode
-    search per ray), with the log density of `targets` if given."""
+    """Every summary of `prediction` (one batched quantile solve for all channels and
+    levels), with the log density of `targets` if given and, with `with_mode`, the mode of
+    each ray's joint colour density (a search per ray, which costs about as much as the
+    quantiles)."""
     for mass in masses:
         _check_level(mass)
     colour, depth = prediction.colour, prediction.depth
@@ -569,7 +582,7 @@ def summarise(
         colour_mean=colour.mean(),
         colour_median=colour_quantiles[0],
         colour_std=colour.std(),
-        colour_mode=colour.mode(),
+        colour_mode=colour.mode() if with_mode else None,
         colour_lower=colour_quantiles[1 : 1 + count],
         colour_upper=colour_quantiles[1 + count :],
         coefficient_entropy=colour.coefficient_entropy(),

@@ -33,8 +33,9 @@ def _summarise_rays(
     temperature: Float[Array, ""],
     targets: Float[Array, "batch channels"] | None,
     masses: tuple[float, ...],
+    with_mode: bool,
 ) -> PredictiveSummary:
-    return summarise(predictive(model, rays, temperature=temperature), masses, targets)
+    return summarise(predictive(model, rays, temperature=temperature), masses, targets, with_mode=with_mode)
 
 
 _summarise_chunk = eqx.filter_jit(_summarise_rays)
@@ -74,6 +75,7 @@ def predict_rays(
     masses: Sequence[float] = DEFAULT_MASSES,
     temperature: float = 1.0,
     targets: np.ndarray | None = None,
+    with_mode: bool = False,
 ) -> dict[str, np.ndarray]:
     """The predictive summaries of any number of rays, `chunk` rays at a time, on the host.
 
@@ -89,11 +91,13 @@ def predict_rays(
     - `masses`: the masses of the central intervals.
     - `temperature`: multiplies every `beta` (see `fit_temperature`).
     - `targets`: true colours with the rays' batch shape, to score (`log_prob`).
+    - `with_mode`: also the mode of each ray's joint colour density (`colour_mode`).
 
     **Returns:**
 
     The fields of `PredictiveSummary` as numpy arrays with `rays.batch_shape` in front (the
-    interval masses' axis before it), `log_prob` only with `targets`.
+    interval masses' axis before it), `log_prob` only with `targets`, `colour_mode` only with
+    `with_mode`.
     """
     if chunk < 1:
         raise ValueError(f"chunk must be at least 1, got {chunk}")
@@ -105,7 +109,7 @@ def predict_rays(
     pending = None
     for piece, target in pieces:
         raise_if_interrupted()
-        summary = _summarise_chunk(model, piece, scale, target, masses)
+        summary = _summarise_chunk(model, piece, scale, target, masses, with_mode)
         # Queue this chunk before copying the previous one back, as `render_rays` does.
         if pending is not None:
             parts.append(_to_host(pending))
@@ -139,9 +143,11 @@ def predict_views(
     masses: Sequence[float] = DEFAULT_MASSES,
     temperature: float = 1.0,
     with_targets: bool = True,
+    with_mode: bool = False,
 ) -> dict[str, np.ndarray]:
     """`predict_rays` over every view of `views`, one view's rays at a time, stacked over
-    the views; scored against the views' images unless `with_targets` is false."""
+    the views; scored against the views' images unless `with_targets` is false (`with_mode`
+    as in `predict_rays`)."""
     per_view = []
     for index in range(views.num_views):
         one = views.select([index])
@@ -154,6 +160,7 @@ def predict_views(
                 masses=masses,
                 temperature=temperature,
                 targets=targets,
+                with_mode=with_mode,
             )
         )
     stacked = {}
