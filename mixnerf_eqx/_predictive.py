@@ -33,12 +33,12 @@ from ._rays import RayBundle
 from ._render import depth_quantile, expected_depth
 from ._renderer import LevelOutputs
 
-# A bisection halves its bracket each step: after 32 halvings the answer lies within 2.3e-10
-# of the bracket's width, below float32's resolution around an answer of size 0.5 for any
-# bracket narrower than about 100 (colours bracket themselves within a few units). The
+# A bisection halves its bracket each step: after 24 halvings the answer lies within 6e-8 of
+# the bracket's width, float32's resolution for answers at least as large as the bracket
+# (colours bracket themselves within about one unit, depths within the ray's bounds). The
 # tolerance on the residual is rarely met exactly in float32, so in practice the solves run to
 # this count (in a batch they run until the slowest is done anyway).
-_BISECTION_STEPS = 32
+_BISECTION_STEPS = 24
 _TOLERANCE = 1e-7
 # Each sweep of the mode search strictly raises the density or ends it; few are ever needed.
 _MODE_SWEEPS = 16
