@@ -13,14 +13,15 @@ checks it):
 - `num_views`: images (cameras) in a set of views.
 - `num_pixels`: pixels of one view, flattened.
 - `features`: the width of an encoding, a hidden layer or a feature map.
-- `resolution`: occupancy grid cells per axis.
+- `resolution`: grid cells per axis (the occupancy grid, one level of a grid field).
+- `levels`: the levels of a multi-resolution grid encoding.
 
 A few functions need a symbol of their own, for a dimension that differs from the shared one
 within one call: the input and output sizes of a layer or an encoding (`in_features`,
 `out_features`), a resize's `out_height out_width`, a sampler's edges before they are tied to
-samples (`num_edges`, `num_prev_edges`, `num_draws`), a slice of the sample axis (`segment`)
-and a convolution's `kernel` size. A name prefixed with `_` only documents a size and is not
-checked (sizes that differ between the entries of a tuple).
+samples (`num_edges`, `num_prev_edges`, `num_draws`), a slice of the sample axis (`segment`),
+a convolution's `kernel` size and a hash table's `entries`. A name prefixed with `_` only
+documents a size and is not checked (sizes that differ between the entries of a tuple).
 """
 
 from typing import TypeAlias

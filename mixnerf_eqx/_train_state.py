@@ -227,6 +227,7 @@ def make_train_step(
             loss_cfg.lambda_colour_end,
             loss_cfg.lambda_colour_steps,
         )
+
         def scheduled_loss(model: MixNeRF, *args, **kwargs):
             # The field as this step sees it (a grid's coarse-to-fine levels); the stored
             # model keeps the whole field.

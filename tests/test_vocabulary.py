@@ -46,7 +46,8 @@ VOCABULARY = frozenset(
         "num_views",
         "num_pixels",
         "features",
-        "resolution",  # occupancy grid cells per axis
+        "resolution",  # grid cells per axis (the occupancy grid, a level of a grid field)
+        "levels",  # the levels of a multi-resolution grid encoding
     }
 )
 
@@ -67,6 +68,8 @@ JUSTIFIED_EXTRAS = frozenset(
         "out_width",
         # LPIPS backbone: the convolution kernel size.
         "kernel",
+        # Hash grid: a level's table entries (fewer than the table size on coarse levels).
+        "entries",
     }
 )
 

@@ -78,7 +78,7 @@ class AbstractGridEncoding(eqx.Module):
 
 
 def _plane_lookup(
-    planes: Float[Array, "3 _res _res features"], point: Vec3
+    planes: Float[Array, "3 _resolution _resolution features"], point: Vec3
 ) -> Float[Array, "3 features"]:
     """Each of a level's three planes sampled bilinearly (corners aligned) at the point's
     projection onto it: plane `k` at the two coordinates other than `k`, the first along its
@@ -111,7 +111,7 @@ class TriPlaneEncoding(AbstractGridEncoding):
     uniform in `[0.1, 0.5]` (K-Planes' initialisation), so products start well away from zero.
     """
 
-    planes: tuple[Float[Array, "3 _res _res features"], ...]
+    planes: tuple[Float[Array, "3 _resolution _resolution features"], ...]
     resolutions: tuple[int, ...] = eqx.field(static=True)
 
     def __init__(self, resolutions: tuple[int, ...], features: int, *, key: PRNGKey):
