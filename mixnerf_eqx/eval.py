@@ -17,6 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from ._cli import report_error
 from ._config import ConfigError
 from ._evaluate import Rendered, evaluate
 from ._interrupt import deferred_interrupts
@@ -224,13 +225,8 @@ def main(argv: list[str] | None = None) -> int:
         with typecheck_argument(args), deferred_interrupts():
             _check_arguments(args)
             run(args)
-    except (ConfigError, DatasetError, ValueError, FileNotFoundError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except OSError as error:
-        where = f"{error.filename}: " if error.filename else ""
-        print(f"error: {where}{error.strerror or error}", file=sys.stderr)
-        return 2
+    except (ConfigError, DatasetError, ValueError, OSError) as error:
+        return report_error(error)
     except KeyboardInterrupt:
         print("\ninterrupted: evaluation stopped; nothing was changed in the run", file=sys.stderr)
         return 130

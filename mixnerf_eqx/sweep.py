@@ -12,6 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ._cli import report_error
 from ._config import ConfigError, load_config, replace_setting
 from ._interrupt import deferred_interrupts
 from ._sweep import SweepRun, aggregate, format_markdown, plan_sweep, run_local, run_submitit, write_table
@@ -120,13 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with typecheck_argument(args), deferred_interrupts():
             return run(args)
-    except (ConfigError, DatasetError, ValueError, FileNotFoundError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except OSError as error:
-        where = f"{error.filename}: " if error.filename else ""
-        print(f"error: {where}{error.strerror or error}", file=sys.stderr)
-        return 2
+    except (ConfigError, DatasetError, ValueError, OSError) as error:
+        return report_error(error)
     except TrainingDiverged as error:
         print(f"\ntraining stopped: {error}; run the sweep again to go on", file=sys.stderr)
         return 1

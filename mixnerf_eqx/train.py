@@ -1,6 +1,6 @@
 """Train MixNeRF: `python -m mixnerf_eqx.train [--config configs/<name>.toml] [section.key=value ...]`.
 
-Without `--config` it trains on the built-in procedural scene with `configs/builtin.toml`,
+Without `--config` it trains on the built-in procedural scene with `configs/builtin_grid.toml`,
 reports the test metrics and writes renders. Runs resume from their latest checkpoint.
 """
 
@@ -8,17 +8,18 @@ import argparse
 import sys
 from pathlib import Path
 
+from ._cli import report_error
 from ._config import ConfigError, load_config, replace_setting
 from ._train import TrainingDiverged, fit
 from ._typecheck import add_typecheck_argument, typecheck_argument
 
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "builtin.toml"
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "builtin_grid.toml"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.train", description=__doc__.split("\n")[0])
     parser.add_argument(
-        "--config", type=Path, default=None, help="TOML config (default: configs/builtin.toml)"
+        "--config", type=Path, default=None, help="TOML config (default: configs/builtin_grid.toml)"
     )
     parser.add_argument("--run-dir", default=None, help="output folder (default: the config's train.run_dir)")
     parser.add_argument(
@@ -71,13 +72,8 @@ def _train(args: argparse.Namespace) -> int:
             config = replace_setting(config, "data", data_dir=args.data_dir)
         print(f"config {config_path} ({config.name}); outputs in {config.train.run_dir}")
         result = fit(config, progress=not args.no_progress)
-    except (ConfigError, ValueError, FileNotFoundError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except OSError as error:
-        where = f"{error.filename}: " if error.filename else ""
-        print(f"error: {where}{error.strerror or error}", file=sys.stderr)
-        return 2
+    except (ConfigError, ValueError, OSError) as error:
+        return report_error(error)
     except TrainingDiverged as error:
         print(f"\ntraining stopped: {error}", file=sys.stderr)
         return 1
