@@ -6,6 +6,7 @@ import tempfile
 
 import jax
 import pytest
+from helpers import TINY_OVERRIDES
 from hypothesis import settings
 
 from mixnerf_eqx import load_config
@@ -26,27 +27,6 @@ jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
-# A model and scene small enough that a training run takes seconds on two CPU cores.
-TINY_OVERRIDES = [
-    "data.resolution=32",
-    "data.num_train_views=4",
-    "data.num_test_views=3",
-    "model.width=32",
-    "model.depth=2",
-    "model.skip_layer=1",
-    "model.view_width=16",
-    "model.max_deg=8",
-    "model.num_coarse_samples=16",
-    "model.num_fine_samples=16",
-    "optim.lr_init=5e-3",
-    "optim.lr_final=5e-4",
-    "optim.warmup_steps=20",
-    "loss.lambda_colour_steps=20",
-    "train.batch_size=256",
-    "train.anneal_steps=20",
-    "train.max_steps=150",
-    "train.checkpoint_every=0",
-]
 
 
 @pytest.fixture

@@ -268,3 +268,27 @@ def ref_cdf(bins, weights, t):
     bins, weights = as_f64(bins, weights)
     cdf = np.concatenate([[0.0], np.cumsum(weights) / weights.sum()])
     return np.interp(t, bins, cdf)
+
+
+# A model and scene small enough that a training run takes seconds on two CPU cores (the
+# `tiny_config` and `tiny_scene` fixtures of conftest.py use it).
+TINY_OVERRIDES = [
+    "data.resolution=32",
+    "data.num_train_views=4",
+    "data.num_test_views=3",
+    "model.width=32",
+    "model.depth=2",
+    "model.skip_layer=1",
+    "model.view_width=16",
+    "model.max_deg=8",
+    "model.num_coarse_samples=16",
+    "model.num_fine_samples=16",
+    "optim.lr_init=5e-3",
+    "optim.lr_final=5e-4",
+    "optim.warmup_steps=20",
+    "loss.lambda_colour_steps=20",
+    "train.batch_size=256",
+    "train.anneal_steps=20",
+    "train.max_steps=150",
+    "train.checkpoint_every=0",
+]

@@ -18,7 +18,7 @@ def _with_train(config, **changes):
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory, tiny_scene):
-    from conftest import TINY_OVERRIDES
+    from helpers import TINY_OVERRIDES
 
     from mixnerf_eqx import load_config
 

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import TINY_OVERRIDES
+from helpers import TINY_OVERRIDES
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, GridField, HashEncoding, Skipping, TriPlaneEncoding, render_rays

@@ -93,7 +93,7 @@ def test_diverging_run_stops_and_keeps_the_last_good_checkpoint(tiny_config, tin
     ids=["aggressive_lr_2_views", "far_bound_30"],
 )
 def test_stress_runs_stay_finite(tiny_config, tiny_scene, overrides, far):
-    from conftest import TINY_OVERRIDES
+    from helpers import TINY_OVERRIDES
 
     from mixnerf_eqx import load_config, render_views
     from mixnerf_eqx.data import load_dataset

@@ -9,7 +9,7 @@ import subprocess
 import imageio_ffmpeg
 import numpy as np
 import pytest
-from conftest import TINY_OVERRIDES
+from helpers import TINY_OVERRIDES
 from PIL import Image
 
 import mixnerf_eqx as mx

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import jax
 import pytest
-from conftest import TINY_OVERRIDES
+from helpers import TINY_OVERRIDES
 
 from mixnerf_eqx import ConfigError
 from mixnerf_eqx._sharding import data_parallel_mesh
