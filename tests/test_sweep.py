@@ -70,7 +70,17 @@ def _import_submitit(monkeypatch):
 
 
 def _sweep_arguments(out, *extra):
-    return ["--seeds", "0,1", "--out", str(out), "--no-progress", *extra, *SWEEP_OVERRIDES]
+    return [
+        "--config",
+        "configs/builtin.toml",
+        "--seeds",
+        "0,1",
+        "--out",
+        str(out),
+        "--no-progress",
+        *extra,
+        *SWEEP_OVERRIDES,
+    ]
 
 
 def test_a_sweep_resumes_what_is_unfinished_and_reads_what_is_finished(tmp_path, capsys):
