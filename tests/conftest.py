@@ -29,6 +29,18 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drops JAX's compiled programs after each test module.
+
+    A whole run compiles thousands of small XLA programs; each executable keeps its code
+    mapped, and one process holding all of them crashed the CPU compiler near the end of the
+    suite. The persistent cache above still spares the recompilation where programs repeat.
+    """
+    yield
+    jax.clear_caches()
+
+
 @pytest.fixture
 def tiny_config(tmp_path):
     config = load_config("configs/builtin.toml", TINY_OVERRIDES)
