@@ -90,6 +90,8 @@ class LossConfig:
     likelihood_floor: float = 1e-12  # NLL = -log(likelihood + floor); 0 for the exact NLL
     depth_scale: Literal["colour", "single"] = "colour"  # depth reuses the 3 colour scales
     nll_evaluation: Literal["log", "linear"] = "log"  # stable log space, or released arithmetic
+    distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on both levels (0: off, the paper)
+    opacity_weight: float = 0.0  # mean ray opacity on both levels, a prior for empty space (0: off)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,7 +11,7 @@ from ._config import LossConfig
 from ._custom_types import PRNGKey
 from ._model import MixNeRF, RenderOutputs
 from ._rays import RayBundle
-from ._render import blend_weights
+from ._render import blend_weights, distortion
 from ._renderer import LevelOutputs
 
 
@@ -26,6 +26,8 @@ class LossWeights:
     - `depth_nll`: lambda_D.
     - `regen_nll`: lambda_hat_C.
     - `nll_levels`: `"coarse"` (the released code) or `"both"`.
+    - `distortion`: weight of the distortion loss (mip-NeRF 360), both levels.
+    - `opacity`: weight of the mean ray opacity, both levels.
     """
 
     coarse_mse: float = 0.1
@@ -33,13 +35,20 @@ class LossWeights:
     depth_nll: float = 1e-3
     regen_nll: float = 1e-4
     nll_levels: str = "coarse"
+    distortion: float = 0.0
+    opacity: float = 0.0
 
     @classmethod
     def from_config(cls, loss: LossConfig, method: str) -> "LossWeights":
         """The weights `loss` sets for `method` (`"mipnerf"`: no mixture term at all)."""
+        # The priors on the weights apply to both methods alike, so the comparison stays fair.
+        priors = dict(distortion=loss.distortion_weight, opacity=loss.opacity_weight)
         if method == "mipnerf":
-            return cls(coarse_mse=loss.coarse_mse_weight, colour_nll=False, depth_nll=0.0, regen_nll=0.0)
+            return cls(
+                coarse_mse=loss.coarse_mse_weight, colour_nll=False, depth_nll=0.0, regen_nll=0.0, **priors
+            )
         return cls(
+            **priors,
             coarse_mse=loss.coarse_mse_weight,
             colour_nll=loss.lambda_colour_start != 0 or loss.lambda_colour_end != 0,
             depth_nll=loss.lambda_depth,
@@ -68,6 +77,8 @@ class LossTerms(eqx.Module):
     nll_depth: Float[Array, ""]
     nll_regen: Float[Array, ""]
     regulariser: Float[Array, ""]
+    distortion: Float[Array, ""]
+    opacity: Float[Array, ""]
 
 
 def _level_nlls(
@@ -108,9 +119,11 @@ def loss_terms(
     lambda_colour: Float[Array, ""],
     weights: LossWeights,
 ) -> LossTerms:
-    """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C + R`.
+    """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C + R + P`.
 
-    `R` is the field's own regulariser (a grid's total variation; 0 for the MLP field).
+    `R` is the field's own regulariser (a grid's total variation; 0 for the MLP field). `P`
+    holds the optional priors on the weights, both off in the paper's configs: the distortion
+    loss and the mean opacity, each summed over the two levels and averaged over rays.
 
     `MSE = mean_rays ||rgb_fine - c||^2 + coarse_mse * mean_rays ||rgb_coarse - c||^2`, the
     squared error summed over the colour channels (paper eq. 11; the released `train.py`
@@ -133,6 +146,17 @@ def loss_terms(
     # ||c_hat - c||^2 summed over the channels, averaged over rays: `channels` per-element MSEs.
     total = channels * (mse_fine + weights.coarse_mse * mse_coarse) + regulariser
     zero = jnp.zeros((), mse_fine.dtype)
+    distortion_term = opacity_term = zero
+    both_levels = (outputs.coarse, outputs.fine)
+    if weights.distortion > 0:
+        for level in both_levels:
+            distortion_term = distortion_term + jnp.mean(
+                jax.vmap(distortion)(level.weights, level.t_edges, rays.near[:, 0], rays.far[:, 0])
+            )
+        total = total + weights.distortion * distortion_term
+    if weights.opacity > 0:
+        opacity_term = sum(jnp.mean(level.acc) for level in both_levels)
+        total = total + weights.opacity * opacity_term
     nll_colour = nll_depth = nll_regen = zero
     if weights.uses_mixture:
         direction_norm = jnp.linalg.norm(rays.directions, axis=-1)
@@ -151,6 +175,8 @@ def loss_terms(
         nll_depth=nll_depth,
         nll_regen=nll_regen,
         regulariser=regulariser,
+        distortion=distortion_term,
+        opacity=opacity_term,
     )
 
 

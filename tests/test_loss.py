@@ -19,6 +19,7 @@ import mixnerf_eqx as mx
 from mixnerf_eqx._field import FieldOutputs
 from mixnerf_eqx._loss import LossWeights, loss_terms
 from mixnerf_eqx._model import RenderOutputs
+from mixnerf_eqx._render import distortion
 from mixnerf_eqx._renderer import LevelOutputs
 
 
@@ -217,3 +218,74 @@ def test_the_baseline_objective_is_the_summed_squared_error(mixnerf_model):
     )
     assert float(terms.total) == pytest.approx(expected, rel=1e-6)
     assert float(terms.nll_colour) == float(terms.nll_depth) == float(terms.nll_regen) == 0.0
+
+
+def _ref_distortion_double_integral(weights, t_edges, near, far, points_per_interval=400):
+    """mip-NeRF 360's distortion as its defining double integral `int int w(s) w(s') |s - s'|`.
+
+    The weights become a step function in `s = (t - near) / (far - near)` (density
+    `w_i / width_i` on interval i); the integral is a midpoint-rule sum on a fine grid, in
+    float64. It shares nothing with the closed form the package uses.
+    """
+    s_edges = (t_edges - near) / (far - near)
+    points, masses = [], []
+    for i, w in enumerate(weights):
+        cell = np.linspace(s_edges[i], s_edges[i + 1], points_per_interval + 1)
+        points.append(0.5 * (cell[1:] + cell[:-1]))
+        masses.append(np.full(points_per_interval, w / points_per_interval))
+    points, masses = np.concatenate(points), np.concatenate(masses)
+    return float(np.sum(masses[:, None] * masses[None, :] * np.abs(points[:, None] - points[None, :])))
+
+
+NEAR_FAR = (jnp.float32(2.0), jnp.float32(6.0))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_distortion_loss_is_its_double_integral(seed):
+    rng = np.random.default_rng(40 + seed)
+    t_edges = as_f64(as_f32(np.sort(rng.uniform(2.0, 6.0, 9))))
+    weights = as_f64(as_f32(rng.dirichlet(np.ones(8)) * rng.uniform(0.3, 1.0)))
+    got = float(distortion(jnp.asarray(as_f32(weights)), jnp.asarray(as_f32(t_edges)), *NEAR_FAR))
+    # The midpoint rule's error inside an interval is O(1/points^2) of its self term.
+    assert got == pytest.approx(_ref_distortion_double_integral(weights, t_edges, 2.0, 6.0), rel=1e-4)
+
+
+def test_the_distortion_loss_of_one_interval_is_its_closed_form():
+    # All the weight w in one interval of normalised width d: w^2 d / 3, however far away.
+    t_edges = jnp.asarray([2.0, 3.0, 3.5, 6.0])
+    got = distortion(jnp.asarray([0.0, 0.8, 0.0]), t_edges, *NEAR_FAR)
+    assert float(got) == pytest.approx(0.8**2 * (0.5 / 4.0) / 3, rel=1e-6)
+    # Two point-like masses a and b at distance D: 2abD, plus their self terms.
+    t_edges = jnp.asarray([2.0, 2.01, 5.99, 6.0])
+    got = distortion(jnp.asarray([0.5, 0.0, 0.5]), t_edges, *NEAR_FAR)
+    gap = (5.995 - 2.005) / 4.0
+    assert float(got) == pytest.approx(2 * 0.25 * gap + 2 * 0.25 * (0.01 / 4.0) / 3, rel=1e-5)
+
+
+@pytest.mark.parametrize("method", ["mixnerf", "mipnerf"])
+def test_the_priors_on_the_weights_add_their_weighted_terms(mixnerf_model, method):
+    """Both methods get the distortion and opacity priors, as written out from the levels."""
+    rng = np.random.default_rng(5)
+    directions = np.tile([[0.0, 0.0, -1.0]], (8, 1))
+    levels = {name: _random_level(rng, 8, 6, np.ones(8), np.ones(3)) for name in ("coarse", "fine")}
+    target = jnp.asarray(as_f32(rng.uniform(0, 1, (8, 3))))
+    base = mx.load_config("configs/builtin.toml").loss
+
+    def terms_with(**priors):
+        weights = LossWeights.from_config(dataclasses.replace(base, **priors), method)
+        return loss_terms(_as_outputs(levels), mixnerf_model, _rays(directions), target, jnp.asarray(1.0), weights)
+
+    plain = terms_with()
+    priors = terms_with(distortion_weight=0.3, opacity_weight=0.02)
+    expected_distortion = sum(
+        _ref_distortion_double_integral(levels[name]["weights"][ray], levels[name]["t_edges"][ray], 2.0, 6.0)
+        for name in ("coarse", "fine")
+        for ray in range(8)
+    ) / 8
+    expected_opacity = sum(levels[name]["weights"].sum() for name in ("coarse", "fine")) / 8
+    assert float(priors.distortion) == pytest.approx(expected_distortion, rel=1e-4)
+    assert float(priors.opacity) == pytest.approx(expected_opacity, rel=1e-5)
+    assert float(priors.total - plain.total) == pytest.approx(
+        0.3 * expected_distortion + 0.02 * expected_opacity, rel=1e-4
+    )
+    assert float(plain.distortion) == float(plain.opacity) == 0.0
