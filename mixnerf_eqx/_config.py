@@ -92,6 +92,10 @@ class LossConfig:
     nll_evaluation: Literal["log", "linear"] = "log"  # stable log space, or released arithmetic
     distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on both levels (0: off, the paper)
     opacity_weight: float = 0.0  # mean ray opacity on both levels, a prior for empty space (0: off)
+    depth_smoothness_weight: float = 0.0  # RegNeRF's depth smoothness on patches of unseen views (0: off)
+    smoothness_patches: int = 4  # patches of unseen views rendered per step for the smoothness prior
+    smoothness_patch_size: int = 8  # their side in pixels
+    smoothness_views: int = 64  # unseen cameras to draw them from: a path through the training cameras
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,6 +215,8 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "grid.features",
             "grid.decoder_width",
             "grid.view_width",
+            "loss.smoothness_patches",
+            "loss.smoothness_views",
         )
     ),
     *(
@@ -233,6 +239,9 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "loss.lambda_regen",
             "loss.weight_eps",
             "loss.likelihood_floor",
+            "loss.distortion_weight",
+            "loss.opacity_weight",
+            "loss.depth_smoothness_weight",
             "optim.warmup_steps",
             "optim.decay_steps",
             "optim.grad_max_value",
@@ -254,6 +263,7 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
         )
     ),
     ("grid.min_resolution", *_at_least(2)),
+    ("loss.smoothness_patch_size", *_at_least(2)),
     ("grid.hash_table_log2", *_within(3, 30)),
     ("model.max_deg", *_at_least(1)),
     ("train.max_steps", lambda value: value <= _INT32_MAX, f"must be at most {_INT32_MAX} (int32 steps)"),

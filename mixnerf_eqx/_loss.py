@@ -28,6 +28,8 @@ class LossWeights:
     - `nll_levels`: `"coarse"` (the released code) or `"both"`.
     - `distortion`: weight of the distortion loss (mip-NeRF 360), both levels.
     - `opacity`: weight of the mean ray opacity, both levels.
+    - `smoothness`: weight of the depth smoothness of unseen-view patches (RegNeRF).
+    - `patch_size`: the side of those patches.
     """
 
     coarse_mse: float = 0.1
@@ -37,12 +39,19 @@ class LossWeights:
     nll_levels: str = "coarse"
     distortion: float = 0.0
     opacity: float = 0.0
+    smoothness: float = 0.0
+    patch_size: int = 8
 
     @classmethod
     def from_config(cls, loss: LossConfig, method: str) -> "LossWeights":
         """The weights `loss` sets for `method` (`"mipnerf"`: no mixture term at all)."""
         # The priors on the weights apply to both methods alike, so the comparison stays fair.
-        priors = dict(distortion=loss.distortion_weight, opacity=loss.opacity_weight)
+        priors = dict(
+            distortion=loss.distortion_weight,
+            opacity=loss.opacity_weight,
+            smoothness=loss.depth_smoothness_weight,
+            patch_size=loss.smoothness_patch_size,
+        )
         if method == "mipnerf":
             return cls(
                 coarse_mse=loss.coarse_mse_weight, colour_nll=False, depth_nll=0.0, regen_nll=0.0, **priors
@@ -79,6 +88,7 @@ class LossTerms(eqx.Module):
     regulariser: Float[Array, ""]
     distortion: Float[Array, ""]
     opacity: Float[Array, ""]
+    smoothness: Float[Array, ""]
 
 
 def _level_nlls(
@@ -177,7 +187,31 @@ def loss_terms(
         regulariser=regulariser,
         distortion=distortion_term,
         opacity=opacity_term,
+        smoothness=zero,
     )
+
+
+def depth_smoothness(outputs: RenderOutputs, rays: RayBundle, patch_size: int) -> Float[Array, ""]:
+    """RegNeRF's depth smoothness of rendered patches, summed over the two levels.
+
+    Per patch, the sum of squared differences between the depths of neighbouring pixels
+    (down and right), with depth normalised to `s = (t - near) / (far - near)` so that the
+    weight does not depend on the scene's units; averaged over patches.
+
+    **Arguments:**
+
+    - `outputs`: the render of the patches' rays, flattened patch by patch.
+    - `rays`: those rays (for `near` and `far`).
+    - `patch_size`: the patches' side.
+    """
+    span = (rays.far - rays.near)[:, 0]
+    total = jnp.zeros((), span.dtype)
+    for level in (outputs.coarse, outputs.fine):
+        depth = ((level.depth - rays.near[:, 0]) / span).reshape(-1, patch_size, patch_size)
+        down = jnp.sum((depth[:, 1:, :] - depth[:, :-1, :]) ** 2, axis=(1, 2))
+        right = jnp.sum((depth[:, :, 1:] - depth[:, :, :-1]) ** 2, axis=(1, 2))
+        total = total + jnp.mean(down + right)
+    return total
 
 
 def loss_fn(
@@ -188,8 +222,22 @@ def loss_fn(
     weights: LossWeights,
     *,
     key: PRNGKey,
+    patches: RayBundle | None = None,
 ) -> tuple[Float[Array, ""], LossTerms]:
-    """Renders `rays` in training mode and returns `(total loss, terms)`."""
-    outputs = model(rays, key=key)
+    """Renders `rays` (and the unseen-view `patches`, in the same pass) in training mode and
+    returns `(total loss, terms)`."""
+    if patches is None or weights.smoothness == 0:
+        outputs = model(rays, key=key)
+        terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
+        return terms.total, terms
+    count = rays.batch_shape[0]
+    both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), rays, patches)
+    rendered = model(both, key=key)
+    outputs = jax.tree_util.tree_map(lambda leaf: leaf[:count], rendered)
+    patch_outputs = jax.tree_util.tree_map(lambda leaf: leaf[count:], rendered)
     terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
+    smoothness = depth_smoothness(patch_outputs, patches, weights.patch_size)
+    terms = eqx.tree_at(
+        lambda t: (t.total, t.smoothness), terms, (terms.total + weights.smoothness * smoothness, smoothness)
+    )
     return terms.total, terms

@@ -67,7 +67,9 @@ def expected_depth(weights: PerSample, t_edges: Edges) -> Float[Array, ""]:
     return jnp.clip(depth, t_edges[0], t_edges[-1])
 
 
-def distortion(weights: PerSample, t_edges: Edges, near: Float[Array, ""], far: Float[Array, ""]) -> Float[Array, ""]:
+def distortion(
+    weights: PerSample, t_edges: Edges, near: Float[Array, ""], far: Float[Array, ""]
+) -> Float[Array, ""]:
     """mip-NeRF 360's distortion loss of one ray, in `s = (t - near) / (far - near)`.
 
     `sum_ij w_i w_j |s_i - s_j| + 1/3 sum_i w_i^2 (s_{i+1} - s_i)`, with `s_i` the interval

@@ -76,7 +76,7 @@ def _due(done: int, every: int) -> bool:
 def _scalars(metrics: StepMetrics) -> dict[str, float]:
     terms = metrics.terms
     names = ("total", "mse_fine", "mse_coarse", "nll_colour", "nll_depth", "nll_regen", "regulariser")
-    names += ("distortion", "opacity")
+    names += ("distortion", "opacity", "smoothness")
     values = {("loss" if name == "total" else name): float(getattr(terms, name)) for name in names}
     values.update(
         psnr=float(metrics.psnr), lr=float(metrics.learning_rate), lambda_colour=float(metrics.lambda_colour)
@@ -283,7 +283,7 @@ def fit(
     (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
     start = int(state.step)
     last_step = train.max_steps if stop_after is None else min(train.max_steps, stop_after)
-    data, take_step = training_rays(dataset), make_train_step(config, max_traces=1)
+    data, take_step = training_rays(dataset, config.loss), make_train_step(config, max_traces=1)
     draw = eqx.filter_jit(draw_batch)
     mesh = data_parallel_mesh(train.data_parallel, train.batch_size)
     if mesh is not None:

@@ -13,15 +13,17 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from ._config import Config, OccupancyConfig, OptimConfig
-from ._custom_types import PRNGKey
+from ._camera_path import orbit_path, spiral_path
+from ._config import Config, LossConfig, OccupancyConfig, OptimConfig
+from ._custom_types import PoseStack, PRNGKey
 from ._loss import LossTerms, LossWeights, loss_fn
 from ._model import MixNeRF, build_model
 from ._occupancy import OccupancyGrid, empty_grid, frustum_box, update_occupancy
-from ._rays import RayBundle
+from ._rays import RayBundle, camera_rays
 from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
 from .data import Dataset, rays_for_views
 
@@ -144,28 +146,93 @@ def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = 
 
 
 class TrainingRays(eqx.Module):
-    """Every training pixel's ray and colour, on the device, grouped by image."""
+    """Every training pixel's ray and colour, on the device, grouped by image, and the pool of
+    unseen-view patches that the depth-smoothness prior draws from (`None` without it)."""
 
     rays: RayBundle
     rgb: Float[Array, "num_views num_pixels channels"]
+    patches: RayBundle | None = None
+    patches_per_step: int = eqx.field(static=True, default=0)
 
 
-def training_rays(dataset: Dataset) -> TrainingRays:
-    """Builds the device-resident ray table of the training views."""
+def unseen_cameras(dataset: Dataset, num_views: int) -> PoseStack:
+    """Cameras no training image was taken from, for the priors on unseen views: a spiral
+    around the training cameras for forward-facing (NDC) scenes, otherwise an orbit at their
+    mean distance and elevation (`mixnerf_eqx._camera_path`). Built from the training poses
+    alone."""
+    poses = np.asarray(dataset.train.camtoworlds, np.float64)
+    path = spiral_path(poses, num_views) if dataset.train.ndc else orbit_path(poses, num_views)
+    return path.astype(np.float32)
+
+
+def unseen_patches(
+    dataset: Dataset, num_views: int, patch_size: int, patches_per_view: int = 16, seed: int = 0
+) -> RayBundle:
+    """A pool of square patches of rays from `unseen_cameras`, `patches_per_view` at random
+    places in each, with the training views' image size, intrinsics and ray space.
+
+    **Returns:**
+
+    A `RayBundle` of batch shape `(num_views * patches_per_view, patch_size, patch_size)`.
+    """
+    train = dataset.train
+    if patch_size > min(train.height, train.width):
+        raise ValueError(
+            f"loss.smoothness_patch_size {patch_size} exceeds the training images "
+            f"({train.height}x{train.width})"
+        )
+    rng = np.random.default_rng(seed)
+    intrinsics = None if train.intrinsics is None else train.intrinsics[:1]
+    offsets = np.arange(patch_size)
+    pool = []
+    for pose in unseen_cameras(dataset, num_views):
+        rays = camera_rays(
+            pose[None],
+            train.focal,
+            train.height,
+            train.width,
+            dataset.near,
+            dataset.far,
+            intrinsics=intrinsics,
+            ndc=train.ndc,
+            origin_plane_z=train.origin_plane_z,
+        )
+        rows = rng.integers(0, train.height - patch_size + 1, patches_per_view)
+        cols = rng.integers(0, train.width - patch_size + 1, patches_per_view)
+        index = (
+            0,
+            (rows[:, None, None] + offsets[None, :, None]),
+            (cols[:, None, None] + offsets[None, None, :]),
+        )
+        pool.append(jax.tree_util.tree_map(lambda leaf, index=index: leaf[index], rays))
+    return jax.tree_util.tree_map(lambda *leaves: jnp.concatenate(leaves), *pool)
+
+
+def training_rays(dataset: Dataset, loss: LossConfig | None = None) -> TrainingRays:
+    """Builds the device-resident ray table of the training views (and, when `loss` turns
+    the depth-smoothness prior on, its pool of unseen-view patches)."""
     views = dataset.train
     rays = rays_for_views(views, dataset.near, dataset.far)
     num_pixels = views.height * views.width
+    patches, per_step = None, 0
+    if loss is not None and loss.depth_smoothness_weight > 0:
+        patches = unseen_patches(dataset, loss.smoothness_views, loss.smoothness_patch_size)
+        per_step = loss.smoothness_patches
     return TrainingRays(
         rays=rays.reshape(views.num_views, num_pixels),
         rgb=jnp.asarray(views.images.reshape(views.num_views, num_pixels, 3), jnp.float32),
+        patches=patches,
+        patches_per_step=per_step,
     )
 
 
 class Batch(eqx.Module):
-    """The rays of one training step and their true colours."""
+    """The rays of one training step and their true colours, and the unseen-view patches of
+    the depth-smoothness prior (flattened, `None` without it)."""
 
     rays: RayBundle
     rgb: Float[Array, "batch channels"]
+    patches: RayBundle | None = None
 
 
 def _step_keys(state: TrainState) -> tuple[PRNGKey, PRNGKey]:
@@ -176,13 +243,19 @@ def _step_keys(state: TrainState) -> tuple[PRNGKey, PRNGKey]:
 
 def draw_batch(data: TrainingRays, state: TrainState, batch_size: int) -> Batch:
     """`batch_size` random pixels (with replacement) of one random training image, drawn
-    with the randomness of the step `state` is about to take."""
-    image_key, pixel_key = jax.random.split(_step_keys(state)[0])
+    with the randomness of the step `state` is about to take, and `data.patches_per_step`
+    random patches of the unseen-view pool."""
+    image_key, pixel_key, patch_key = jax.random.split(_step_keys(state)[0], 3)
     num_images, num_pixels = data.rgb.shape[:2]
     image = jax.random.randint(image_key, (), 0, num_images)
     pixels = jax.random.randint(pixel_key, (batch_size,), 0, num_pixels)
     rays = jax.tree_util.tree_map(lambda x: x[image][pixels], data.rays)
-    return Batch(rays=rays, rgb=data.rgb[image][pixels])
+    patches = None
+    if data.patches is not None:
+        chosen = jax.random.randint(patch_key, (data.patches_per_step,), 0, data.patches.batch_shape[0])
+        patches = jax.tree_util.tree_map(lambda x: x[chosen], data.patches)
+        patches = patches.reshape(-1)
+    return Batch(rays=rays, rgb=data.rgb[image][pixels], patches=patches)
 
 
 class StepMetrics(eqx.Module):
@@ -234,8 +307,13 @@ def make_train_step(
             model = eqx.tree_at(lambda m: m.field, model, model.field.at_step(step_number))
             return loss_fn(model, *args, **kwargs)
 
+        patches = batch.patches
+        if patches is not None:
+            patches = anneal_sample_space(
+                patches, step_number, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid
+            )
         (_, terms), grads = eqx.filter_value_and_grad(scheduled_loss, has_aux=True)(
-            state.model, rays, batch.rgb, lambda_colour, weights, key=_step_keys(state)[1]
+            state.model, rays, batch.rgb, lambda_colour, weights, key=_step_keys(state)[1], patches=patches
         )
         params = eqx.filter(state.model, eqx.is_array)
         updates, new_opt_state = state.optimizer.update(grads, state.opt_state, params)

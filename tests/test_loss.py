@@ -273,15 +273,22 @@ def test_the_priors_on_the_weights_add_their_weighted_terms(mixnerf_model, metho
 
     def terms_with(**priors):
         weights = LossWeights.from_config(dataclasses.replace(base, **priors), method)
-        return loss_terms(_as_outputs(levels), mixnerf_model, _rays(directions), target, jnp.asarray(1.0), weights)
+        return loss_terms(
+            _as_outputs(levels), mixnerf_model, _rays(directions), target, jnp.asarray(1.0), weights
+        )
 
     plain = terms_with()
     priors = terms_with(distortion_weight=0.3, opacity_weight=0.02)
-    expected_distortion = sum(
-        _ref_distortion_double_integral(levels[name]["weights"][ray], levels[name]["t_edges"][ray], 2.0, 6.0)
-        for name in ("coarse", "fine")
-        for ray in range(8)
-    ) / 8
+    expected_distortion = (
+        sum(
+            _ref_distortion_double_integral(
+                levels[name]["weights"][ray], levels[name]["t_edges"][ray], 2.0, 6.0
+            )
+            for name in ("coarse", "fine")
+            for ray in range(8)
+        )
+        / 8
+    )
     expected_opacity = sum(levels[name]["weights"].sum() for name in ("coarse", "fine")) / 8
     assert float(priors.distortion) == pytest.approx(expected_distortion, rel=1e-4)
     assert float(priors.opacity) == pytest.approx(expected_opacity, rel=1e-5)
