@@ -4,8 +4,12 @@ import os
 import shutil
 import tempfile
 
-import jax
-import pytest
+# Each worker process of the suite is a JAX client: on a GPU none may take most of its memory
+# up front, or the second one would find none left (set before JAX is imported).
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 from helpers import TINY_OVERRIDES
 from hypothesis import settings
 
