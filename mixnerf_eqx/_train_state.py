@@ -245,13 +245,16 @@ def draw_batch(data: TrainingRays, state: TrainState, batch_size: int) -> Batch:
     """`batch_size` random pixels (with replacement) of one random training image, drawn
     with the randomness of the step `state` is about to take, and `data.patches_per_step`
     random patches of the unseen-view pool."""
-    image_key, pixel_key, patch_key = jax.random.split(_step_keys(state)[0], 3)
+    batch_key = _step_keys(state)[0]
+    image_key, pixel_key = jax.random.split(batch_key)
     num_images, num_pixels = data.rgb.shape[:2]
     image = jax.random.randint(image_key, (), 0, num_images)
     pixels = jax.random.randint(pixel_key, (batch_size,), 0, num_pixels)
     rays = jax.tree_util.tree_map(lambda x: x[image][pixels], data.rays)
     patches = None
     if data.patches is not None:
+        # A key of its own, so that a run without patches draws exactly the pixels it always did.
+        patch_key = jax.random.fold_in(batch_key, 1)
         chosen = jax.random.randint(patch_key, (data.patches_per_step,), 0, data.patches.batch_shape[0])
         patches = jax.tree_util.tree_map(lambda x: x[chosen], data.patches)
         patches = patches.reshape(-1)
