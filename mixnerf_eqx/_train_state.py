@@ -23,9 +23,9 @@ from ._custom_types import PoseStack, PRNGKey
 from ._loss import LossTerms, LossWeights, loss_fn
 from ._model import MixNeRF, build_model
 from ._occupancy import OccupancyGrid, empty_grid, frustum_box, update_occupancy
-from ._rays import RayBundle, camera_rays
+from ._rays import RayBundle
 from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
-from .data import Dataset, rays_for_views
+from .data import Dataset, rays_at_poses, rays_for_views
 
 
 def make_optimizer(optim: OptimConfig, learning_rate: optax.Schedule) -> optax.GradientTransformation:
@@ -182,21 +182,10 @@ def unseen_patches(
             f"({train.height}x{train.width})"
         )
     rng = np.random.default_rng(seed)
-    intrinsics = None if train.intrinsics is None else train.intrinsics[:1]
     offsets = np.arange(patch_size)
     pool = []
     for pose in unseen_cameras(dataset, num_views):
-        rays = camera_rays(
-            pose[None],
-            train.focal,
-            train.height,
-            train.width,
-            dataset.near,
-            dataset.far,
-            intrinsics=intrinsics,
-            ndc=train.ndc,
-            origin_plane_z=train.origin_plane_z,
-        )
+        rays = rays_at_poses(train, pose[None], dataset.near, dataset.far)
         rows = rng.integers(0, train.height - patch_size + 1, patches_per_view)
         cols = rng.integers(0, train.width - patch_size + 1, patches_per_view)
         index = (

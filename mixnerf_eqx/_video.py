@@ -17,13 +17,12 @@ import numpy as np
 from jaxtyping import Float
 
 from ._camera_path import camera_path
-from ._custom_types import PoseStack
 from ._evaluate import render_rays
 from ._images import colourise_depth, save_png, to_uint8
 from ._model import MixNeRF
-from ._rays import RayBundle, camera_rays
+from ._rays import RayBundle
 from ._skipping import Skipping
-from .data import Dataset, Views, rays_for_views
+from .data import Dataset, rays_at_poses, rays_for_views
 
 
 def side_by_side(panels: list[Float[np.ndarray, "height width channels"]]) -> np.ndarray:
@@ -129,22 +128,6 @@ class VideoWriter:
         return self.staging
 
 
-def _frame_rays(like: Views, pose: PoseStack, near: float, far: float) -> RayBundle:
-    """The rays of a camera with `like`'s image size, intrinsics and ray space at `pose`."""
-    intrinsics = None if like.intrinsics is None else like.intrinsics[:1]
-    return camera_rays(
-        pose,
-        like.focal,
-        like.height,
-        like.width,
-        near,
-        far,
-        intrinsics=intrinsics,
-        ndc=like.ndc,
-        origin_plane_z=like.origin_plane_z,
-    )
-
-
 def path_frames(dataset: Dataset, kind: str, num_frames: int) -> tuple[int, Callable[[int], RayBundle]]:
     """The number of frames of the video `kind` (`"test"`: the test views; otherwise a
     `camera_path` kind) and a function from a frame's index to its rays."""
@@ -152,7 +135,7 @@ def path_frames(dataset: Dataset, kind: str, num_frames: int) -> tuple[int, Call
     if kind == "test":
         return dataset.test.num_views, lambda index: rays_for_views(dataset.test.select([index]), near, far)
     poses = camera_path(dataset, kind, num_frames).astype(np.float32)
-    return len(poses), lambda index: _frame_rays(dataset.test, poses[index : index + 1], near, far)
+    return len(poses), lambda index: rays_at_poses(dataset.test, poses[index : index + 1], near, far)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,6 +12,7 @@
 
 from ._dataset import Dataset as Dataset
 from ._dataset import Views as Views
+from ._dataset import rays_at_poses as rays_at_poses
 from ._dataset import rays_for_views as rays_for_views
 from ._errors import DatasetError as DatasetError
 from ._registry import DATASETS as DATASETS

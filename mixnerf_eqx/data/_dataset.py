@@ -147,6 +147,28 @@ def rays_for_views(views: Views, near: float, far: float) -> RayBundle:
     )
 
 
+def rays_at_poses(like: Views, camtoworlds: PoseStack, near: float, far: float) -> RayBundle:
+    """The rays of cameras at `camtoworlds` with `like`'s image size, intrinsics (its first
+    view's) and ray space: views that no image was taken from (videos, priors on unseen views).
+
+    **Returns:**
+
+    A float32 `RayBundle` with batch shape `(num_poses, height, width)`.
+    """
+    intrinsics = None if like.intrinsics is None else np.repeat(like.intrinsics[:1], len(camtoworlds), axis=0)
+    return camera_rays(
+        camtoworlds,
+        like.focal,
+        like.height,
+        like.width,
+        near,
+        far,
+        intrinsics=intrinsics,
+        ndc=like.ndc,
+        origin_plane_z=like.origin_plane_z,
+    )
+
+
 def check_images(images: Float[np.ndarray, "..."], name: str) -> None:
     """Raises a clear error when an image stack is not finite float data in [0, 1]."""
     if not np.all(np.isfinite(images)):
