@@ -186,6 +186,25 @@ def test_field_shapes_and_finite_gradients(kind):
         field(jnp.zeros(2), jnp.zeros(3), jnp.zeros(3))
 
 
+def test_density_noise_is_added_in_training_only():
+    field = _field(TriPlaneEncoding((4, 8), 3, key=jax.random.key(0)), density_noise=0.7)
+    point, cov, viewdir = jnp.asarray([0.2, -0.5, 0.4]), jnp.full(3, 1e-3), jnp.asarray([0.0, 0.6, 0.8])
+    raw = float(field._density_branch(point, cov)[0])
+    key = jax.random.key(3)
+    # Training (a key): softplus(raw + 0.7 z) with z the key's standard normal draw, in float64.
+    z = float(jax.random.normal(key, ()))
+    np.testing.assert_allclose(
+        float(field(point, cov, viewdir, key=key).density), np.logaddexp(0.0, raw + 0.7 * z), rtol=1e-5
+    )
+    # Renders (no key) and the density queries of the occupancy grid add none.
+    np.testing.assert_allclose(float(field(point, cov, viewdir).density), np.logaddexp(0.0, raw), rtol=1e-6)
+    np.testing.assert_allclose(float(field.density(point, cov)), np.logaddexp(0.0, raw), rtol=1e-6)
+    # The quick start sets it, and its baseline inherits it.
+    for name in ("builtin_grid", "builtin_mipnerf_grid"):
+        config = mx.load_config(f"configs/{name}.toml")
+        assert mx.build_model(config, key=jax.random.key(0)).field.density_noise == 1.0
+
+
 def test_bounded_field_is_empty_outside_its_box():
     encoding = TriPlaneEncoding((4,), 2, key=jax.random.key(0))
     field = _field(encoding, bounded=True)
