@@ -2,8 +2,9 @@
 
 `python benchmarks/fit_report.py RUN_DIR [--montage PATH]` renders every training view of the
 run and prints their PSNR, then splits the held-out views' squared error between background
-pixels (pure white in the ground truth: the built-in scene and Blender) and the rest, and
-prints the PSNR the run would score if its background were perfect. `--montage` writes the
+pixels (pure white in the ground truth: the built-in scene and Blender) and the rest, prints
+the PSNR the run would score if its background were perfect and the mean rendered opacity of
+each part. `--montage` writes the
 training views beside their renders.
 """
 
@@ -45,6 +46,10 @@ def main() -> None:
             f"{squared[background].mean():.4f}; objects: {squared[~background].mean():.4f}"
         )
         print(f"  PSNR with a perfect background: {_psnr(squared[~background].sum() / squared.size):.2f}")
+        print(
+            f"  mean opacity: background {test.acc[background].mean():.3f} (haze; 0 is right), "
+            f"objects {test.acc[~background].mean():.3f}"
+        )
 
     if args.montage:
         pairs = zip(dataset.train.images, train.rgb, strict=True)

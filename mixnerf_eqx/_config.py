@@ -75,6 +75,7 @@ class GridConfig:
     tv_weight: float = 0.0  # weight of total variation on the planes (the tri-plane encoding)
     coarse_to_fine_steps: int = 0  # reveal the levels coarse to fine over this many steps (0: off)
     density_noise: float = 0.0  # std of the raw-density noise in training
+    density_activation: Literal["softplus", "exp"] = "softplus"  # raw density to density (exp: instant-ngp's)
 
 
 @dataclasses.dataclass(frozen=True)

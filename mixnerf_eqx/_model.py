@@ -213,6 +213,7 @@ def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -
         scale_weighting=grid.scale_weighting,
         tv_weight=grid.tv_weight,
         coarse_to_fine_steps=grid.coarse_to_fine_steps,
+        density_activation=grid.density_activation,
         density_noise=grid.density_noise,
         density_bias=model_cfg.density_bias,
         rgb_padding=model_cfg.rgb_padding,

@@ -13,6 +13,7 @@ from helpers import TINY_OVERRIDES
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, GridField, HashEncoding, Skipping, TriPlaneEncoding, render_rays
 from mixnerf_eqx._config import replace_setting
+from mixnerf_eqx._field.grid import density_activation
 from mixnerf_eqx.metrics import psnr
 
 GRID_OVERRIDES = [
@@ -203,6 +204,39 @@ def test_density_noise_is_added_in_training_only():
     for name in ("builtin_grid", "builtin_mipnerf_grid"):
         config = mx.load_config(f"configs/{name}.toml")
         assert mx.build_model(config, key=jax.random.key(0)).field.density_noise == 1.0
+
+
+def test_exponential_density_activation():
+    encoding = TriPlaneEncoding((4, 8), 3, key=jax.random.key(0))
+    field = _field(encoding, density_activation="exp", density_noise=0.7)
+    point, cov, viewdir = jnp.asarray([0.2, -0.5, 0.4]), jnp.full(3, 1e-3), jnp.asarray([0.0, 0.6, 0.8])
+    raw = float(field._density_branch(point, cov)[0])
+    key = jax.random.key(3)
+    z = float(jax.random.normal(key, ()))
+    # exp(raw) in renders and density queries, exp(raw + 0.7 z) in training: float64 references.
+    np.testing.assert_allclose(float(field.density(point, cov)), np.exp(raw), rtol=1e-5)
+    np.testing.assert_allclose(float(field(point, cov, viewdir).density), np.exp(raw), rtol=1e-5)
+    np.testing.assert_allclose(
+        float(field(point, cov, viewdir, key=key).density), np.exp(raw + 0.7 * z), rtol=1e-5
+    )
+    # The cap keeps a huge raw density finite, with a finite (zero) gradient above it.
+    raw_values = jnp.asarray([-30.0, 0.0, 5.0, 11.0, 500.0])
+    values = density_activation(raw_values, "exp")
+    np.testing.assert_allclose(
+        values, np.exp(np.minimum(np.asarray(raw_values, np.float64), 11.0)), rtol=1e-6
+    )
+    grads = jax.grad(lambda r: jnp.sum(density_activation(r, "exp")))(raw_values)
+    assert bool(jnp.all(jnp.isfinite(grads))) and float(grads[-1]) == 0.0
+    np.testing.assert_allclose(
+        density_activation(raw_values, "softplus"), np.logaddexp(0.0, raw_values), rtol=1e-6
+    )
+    with pytest.raises(ValueError, match="density_activation"):
+        _field(encoding, density_activation="relu")
+    # The quick start uses it, and its baseline inherits it; the MLP-sized default stays softplus.
+    for name in ("builtin_grid", "builtin_mipnerf_grid"):
+        config = mx.load_config(f"configs/{name}.toml")
+        assert mx.build_model(config, key=jax.random.key(0)).field.density_activation == "exp"
+    assert mx.load_config(None, ["model.field=grid"]).grid.density_activation == "softplus"
 
 
 def test_bounded_field_is_empty_outside_its_box():

@@ -225,6 +225,20 @@ def level_scale_weights(
     return jax.scipy.special.erf(cells / jnp.maximum(math.sqrt(8.0) * sigma, 1e-12))
 
 
+# exp's argument is capped here: exp(11) ~ 6e4 is opaque over any interval a sampler makes,
+# and the cap keeps the forward pass finite (instant-ngp's truncated exponential caps the
+# gradient instead; here the gradient above the cap is zero, which no trained field reaches).
+_EXP_DENSITY_CAP = 11.0
+
+
+def density_activation(raw: Float[Array, "*shape"], kind: str) -> Float[Array, "*shape"]:
+    """The density from the raw output: `softplus(raw)` (mip-NeRF) or `exp(min(raw, 11))`
+    (instant-ngp's exponential, capped)."""
+    if kind == "exp":
+        return jnp.exp(jnp.minimum(raw, _EXP_DENSITY_CAP))
+    return jax.nn.softplus(raw)
+
+
 class GridField(AbstractField):
     """A grid encoding and a small decoder, with MixNeRF's heads placed as in the MLP field.
 
@@ -246,6 +260,9 @@ class GridField(AbstractField):
     - `tv_weight` (static): weight of the encoding's total variation in the loss.
     - `coarse_to_fine_steps` (static): steps over which the levels are revealed one after
       another, coarsest first (0: all from the start).
+    - `density_activation` (static): `"softplus"` (the MLP field's) or `"exp"`; the
+      exponential lets a few steps make a surface opaque within one sample interval (density
+      grows by a factor per step of the optimiser, not by a constant).
     - `density_noise`, `density_bias`, `rgb_padding`, `viewdir_max_deg` (static): as in
       `MipNeRFField`.
     """
@@ -264,6 +281,7 @@ class GridField(AbstractField):
     scale_weighting: bool = eqx.field(static=True)
     tv_weight: float = eqx.field(static=True)
     coarse_to_fine_steps: int = eqx.field(static=True)
+    density_activation: str = eqx.field(static=True)
     density_noise: float = eqx.field(static=True)
     density_bias: float = eqx.field(static=True)
     rgb_padding: float = eqx.field(static=True)
@@ -283,6 +301,7 @@ class GridField(AbstractField):
         scale_weighting: bool = True,
         tv_weight: float = 0.0,
         coarse_to_fine_steps: int = 0,
+        density_activation: str = "softplus",
         density_noise: float = 0.0,
         density_bias: float = -1.0,
         rgb_padding: float = 0.001,
@@ -297,6 +316,8 @@ class GridField(AbstractField):
             or any(lo >= hi for lo, hi in zip(box_min, box_max, strict=True))
         ):
             raise ValueError(f"the box must have three sides of positive length, got {box_min}, {box_max}")
+        if density_activation not in ("softplus", "exp"):
+            raise ValueError(f"density_activation must be 'softplus' or 'exp', got {density_activation!r}")
         if decoder_width < 1 or view_width < 1 or geo_features < 0:
             raise ValueError("decoder_width and view_width must be positive and geo_features >= 0")
         view_size = 3 + 2 * 3 * viewdir_max_deg
@@ -316,6 +337,7 @@ class GridField(AbstractField):
         self.scale_weighting = scale_weighting
         self.tv_weight = tv_weight
         self.coarse_to_fine_steps = coarse_to_fine_steps
+        self.density_activation = density_activation
         self.density_noise = density_noise
         self.density_bias = density_bias
         self.rgb_padding = rgb_padding
@@ -359,13 +381,13 @@ class GridField(AbstractField):
         return raw, out[1:]
 
     def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
-        return jax.nn.softplus(self._density_branch(mean, cov)[0])
+        return density_activation(self._density_branch(mean, cov)[0], self.density_activation)
 
     def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         raw_density, geometry = self._density_branch(mean, cov)
         if key is not None and self.density_noise > 0:
             raw_density = raw_density + self.density_noise * jax.random.normal(key, (), raw_density.dtype)
-        density = jax.nn.softplus(raw_density)
+        density = density_activation(raw_density, self.density_activation)
         view_features = positional_encoding(viewdir, 0, self.viewdir_max_deg, append_identity=True)
         hidden = jax.nn.relu(self.view_layer(jnp.concatenate([geometry, view_features])))
         rgb = jax.nn.sigmoid(self.rgb_head(hidden)) * (1 + 2 * self.rgb_padding) - self.rgb_padding
