@@ -57,7 +57,7 @@ def _bilinear(image: np.ndarray, coords: np.ndarray) -> np.ndarray:
 def ceiling(resolution: int, num_train_views: int, num_test_views: int) -> dict:
     train_poses = scene._train_poses(num_train_views)
     test_poses = scene._test_poses(num_test_views)
-    train_images, _ = scene._render(train_poses, resolution)
+    train_images, train_depths = scene._render(train_poses, resolution)
     test_images, _ = scene._render(test_poses, resolution)
     focal = scene._focal(resolution)
 
@@ -69,14 +69,19 @@ def ceiling(resolution: int, num_train_views: int, num_test_views: int) -> dict:
     points = origins + scene._finite(t)[..., None] * directions
     test_viewdirs = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
 
-    train_hit = np.isfinite(scene._render(train_poses, resolution)[1])
-    fill = train_images[train_hit].mean(axis=0)
+    fill = train_images[np.isfinite(train_depths)].mean(axis=0)
 
     # For every training camera: does it see the point (in frame and unoccluded), from which angle?
     best_cos = np.full(t.shape, -np.inf)
     exact = np.tile(fill, t.shape + (1,))
     bilinear = exact.copy()
     albedo = scene._albedo(points, normals, shape_ids)
+    # Whether the light reaches a point does not depend on the camera: one shadow ray each.
+    towards_test = scene._facing(normals, test_viewdirs)
+    shadow_t, _, _ = scene._intersect_scene(
+        points + 1e-6 * towards_test, np.broadcast_to(scene.LIGHT_DIRECTION, points.shape)
+    )
+    light = np.isinf(shadow_t).astype(np.float64)
     for index, pose in enumerate(train_poses):
         coords, in_front = _project(points, pose, focal, resolution)
         in_frame = in_front & np.all((coords >= 0) & (coords <= resolution), axis=-1)
@@ -107,9 +112,13 @@ def ceiling(resolution: int, num_train_views: int, num_test_views: int) -> dict:
     }
     for name, estimate in (("exact", exact), ("bilinear", bilinear)):
         estimate = np.where(hit[..., None], estimate, 1.0)
-        per_view = [mse_to_psnr(float(np.mean((e - g) ** 2))) for e, g in zip(estimate, test_images)]
+        per_view = [
+            mse_to_psnr(float(np.mean((e - g) ** 2))) for e, g in zip(estimate, test_images, strict=True)
+        ]
         seen_only = np.where((hit & ~seen)[..., None], test_images, estimate)
-        per_view_seen = [mse_to_psnr(float(np.mean((e - g) ** 2))) for e, g in zip(seen_only, test_images)]
+        per_view_seen = [
+            mse_to_psnr(float(np.mean((e - g) ** 2))) for e, g in zip(seen_only, test_images, strict=True)
+        ]
         result[name] = {
             "psnr": float(np.mean(per_view)),
             "psnr_per_view": per_view,
