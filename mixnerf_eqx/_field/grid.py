@@ -231,7 +231,7 @@ def level_scale_weights(
 _EXP_DENSITY_CAP = 11.0
 
 
-def density_activation(raw: Float[Array, "*shape"], kind: str) -> Float[Array, "*shape"]:
+def density_activation(raw: Float[Array, "*batch"], kind: str) -> Float[Array, "*batch"]:
     """The density from the raw output: `softplus(raw)` (mip-NeRF) or `exp(min(raw, 11))`
     (instant-ngp's exponential, capped)."""
     if kind == "exp":
