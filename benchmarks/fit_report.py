@@ -4,8 +4,7 @@
 run and prints their PSNR, then splits the held-out views' squared error between background
 pixels (pure white in the ground truth: the built-in scene and Blender) and the rest, prints
 the PSNR the run would score if its background were perfect and the mean rendered opacity of
-each part. `--montage` writes the
-training views beside their renders.
+each part. `--montage` writes the training views beside their renders.
 """
 
 import argparse
