@@ -93,8 +93,10 @@ class LossConfig:
     nll_evaluation: Literal["log", "linear"] = "log"  # stable log space, or released arithmetic
     distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on both levels (0: off, the paper)
     opacity_weight: float = 0.0  # mean ray opacity on both levels, a prior for empty space (0: off)
+    opacity_entropy_weight: float = 0.0  # binary entropy of the ray opacity, both levels (0: off)
+    unseen_entropy_weight: float = 0.0  # the same on the unseen-view patches below (0: off)
     depth_smoothness_weight: float = 0.0  # RegNeRF's depth smoothness on patches of unseen views (0: off)
-    smoothness_patches: int = 4  # patches of unseen views rendered per step for the smoothness prior
+    smoothness_patches: int = 4  # patches of unseen views rendered per step for the two unseen-view priors
     smoothness_patch_size: int = 8  # their side in pixels
     smoothness_views: int = 64  # unseen cameras to draw them from: a path through the training cameras
 
@@ -242,6 +244,8 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "loss.likelihood_floor",
             "loss.distortion_weight",
             "loss.opacity_weight",
+            "loss.opacity_entropy_weight",
+            "loss.unseen_entropy_weight",
             "loss.depth_smoothness_weight",
             "optim.warmup_steps",
             "optim.decay_steps",

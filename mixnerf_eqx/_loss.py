@@ -28,6 +28,8 @@ class LossWeights:
     - `nll_levels`: `"coarse"` (the released code) or `"both"`.
     - `distortion`: weight of the distortion loss (mip-NeRF 360), both levels.
     - `opacity`: weight of the mean ray opacity, both levels.
+    - `opacity_entropy`: weight of the binary entropy of the ray opacity, both levels.
+    - `unseen_entropy`: the same on the unseen-view patches.
     - `smoothness`: weight of the depth smoothness of unseen-view patches (RegNeRF).
     - `patch_size`: the side of those patches.
     """
@@ -39,6 +41,8 @@ class LossWeights:
     nll_levels: str = "coarse"
     distortion: float = 0.0
     opacity: float = 0.0
+    opacity_entropy: float = 0.0
+    unseen_entropy: float = 0.0
     smoothness: float = 0.0
     patch_size: int = 8
 
@@ -49,6 +53,8 @@ class LossWeights:
         priors = dict(
             distortion=loss.distortion_weight,
             opacity=loss.opacity_weight,
+            opacity_entropy=loss.opacity_entropy_weight,
+            unseen_entropy=loss.unseen_entropy_weight,
             smoothness=loss.depth_smoothness_weight,
             patch_size=loss.smoothness_patch_size,
         )
@@ -88,7 +94,20 @@ class LossTerms(eqx.Module):
     regulariser: Float[Array, ""]
     distortion: Float[Array, ""]
     opacity: Float[Array, ""]
+    opacity_entropy: Float[Array, ""]
+    unseen_entropy: Float[Array, ""]
     smoothness: Float[Array, ""]
+
+
+def opacity_entropy(acc: Float[Array, "*batch"], eps: float = 1e-4) -> Float[Array, ""]:
+    """The mean binary entropy `-a log a - (1 - a) log(1 - a)` of the ray opacities `acc`.
+
+    Zero where a ray is empty or opaque, `log 2` at half opacity: a prior that every ray
+    either passes through empty space or stops at a solid surface. `acc` is clipped to
+    `[eps, 1 - eps]`, which bounds the gradient by `log((1 - eps) / eps)`.
+    """
+    a = jnp.clip(acc, eps, 1.0 - eps)
+    return jnp.mean(-(a * jnp.log(a) + (1.0 - a) * jnp.log1p(-a)))
 
 
 def _level_nlls(
@@ -156,7 +175,7 @@ def loss_terms(
     # ||c_hat - c||^2 summed over the channels, averaged over rays: `channels` per-element MSEs.
     total = channels * (mse_fine + weights.coarse_mse * mse_coarse) + regulariser
     zero = jnp.zeros((), mse_fine.dtype)
-    distortion_term = opacity_term = zero
+    distortion_term = opacity_term = entropy_term = zero
     both_levels = (outputs.coarse, outputs.fine)
     if weights.distortion > 0:
         for level in both_levels:
@@ -167,6 +186,9 @@ def loss_terms(
     if weights.opacity > 0:
         opacity_term = sum(jnp.mean(level.acc) for level in both_levels)
         total = total + weights.opacity * opacity_term
+    if weights.opacity_entropy > 0:
+        entropy_term = sum(opacity_entropy(level.acc) for level in both_levels)
+        total = total + weights.opacity_entropy * entropy_term
     nll_colour = nll_depth = nll_regen = zero
     if weights.uses_mixture:
         direction_norm = jnp.linalg.norm(rays.directions, axis=-1)
@@ -187,6 +209,8 @@ def loss_terms(
         regulariser=regulariser,
         distortion=distortion_term,
         opacity=opacity_term,
+        opacity_entropy=entropy_term,
+        unseen_entropy=zero,
         smoothness=zero,
     )
 
@@ -226,7 +250,7 @@ def loss_fn(
 ) -> tuple[Float[Array, ""], LossTerms]:
     """Renders `rays` (and the unseen-view `patches`, in the same pass) in training mode and
     returns `(total loss, terms)`."""
-    if patches is None or weights.smoothness == 0:
+    if patches is None or (weights.smoothness == 0 and weights.unseen_entropy == 0):
         outputs = model(rays, key=key)
         terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
         return terms.total, terms
@@ -236,8 +260,16 @@ def loss_fn(
     outputs = jax.tree_util.tree_map(lambda leaf: leaf[:count], rendered)
     patch_outputs = jax.tree_util.tree_map(lambda leaf: leaf[count:], rendered)
     terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
-    smoothness = depth_smoothness(patch_outputs, patches, weights.patch_size)
+    zero = jnp.zeros_like(terms.total)
+    smoothness = unseen_entropy = zero
+    if weights.smoothness > 0:
+        smoothness = depth_smoothness(patch_outputs, patches, weights.patch_size)
+    if weights.unseen_entropy > 0:
+        unseen_entropy = sum(
+            opacity_entropy(level.acc) for level in (patch_outputs.coarse, patch_outputs.fine)
+        )
+    total = terms.total + weights.smoothness * smoothness + weights.unseen_entropy * unseen_entropy
     terms = eqx.tree_at(
-        lambda t: (t.total, t.smoothness), terms, (terms.total + weights.smoothness * smoothness, smoothness)
+        lambda t: (t.total, t.smoothness, t.unseen_entropy), terms, (total, smoothness, unseen_entropy)
     )
     return terms.total, terms

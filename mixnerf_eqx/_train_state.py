@@ -204,7 +204,7 @@ def training_rays(dataset: Dataset, loss: LossConfig | None = None) -> TrainingR
     rays = rays_for_views(views, dataset.near, dataset.far)
     num_pixels = views.height * views.width
     patches, per_step = None, 0
-    if loss is not None and loss.depth_smoothness_weight > 0:
+    if loss is not None and (loss.depth_smoothness_weight > 0 or loss.unseen_entropy_weight > 0):
         patches = unseen_patches(dataset, loss.smoothness_views, loss.smoothness_patch_size)
         per_step = loss.smoothness_patches
     return TrainingRays(

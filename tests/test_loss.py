@@ -17,7 +17,7 @@ from helpers import as_f32, as_f64
 
 import mixnerf_eqx as mx
 from mixnerf_eqx._field import FieldOutputs
-from mixnerf_eqx._loss import LossWeights, loss_terms
+from mixnerf_eqx._loss import LossWeights, loss_terms, opacity_entropy
 from mixnerf_eqx._model import RenderOutputs
 from mixnerf_eqx._render import distortion
 from mixnerf_eqx._renderer import LevelOutputs
@@ -278,7 +278,7 @@ def test_the_priors_on_the_weights_add_their_weighted_terms(mixnerf_model, metho
         )
 
     plain = terms_with()
-    priors = terms_with(distortion_weight=0.3, opacity_weight=0.02)
+    priors = terms_with(distortion_weight=0.3, opacity_weight=0.02, opacity_entropy_weight=0.05)
     expected_distortion = (
         sum(
             _ref_distortion_double_integral(
@@ -290,9 +290,25 @@ def test_the_priors_on_the_weights_add_their_weighted_terms(mixnerf_model, metho
         / 8
     )
     expected_opacity = sum(levels[name]["weights"].sum() for name in ("coarse", "fine")) / 8
+    opacities = [np.clip(levels[name]["weights"].sum(-1), 1e-4, 1 - 1e-4) for name in ("coarse", "fine")]
+    expected_entropy = sum(np.mean(-(a * np.log(a) + (1 - a) * np.log(1 - a))) for a in opacities)
     assert float(priors.distortion) == pytest.approx(expected_distortion, rel=1e-4)
     assert float(priors.opacity) == pytest.approx(expected_opacity, rel=1e-5)
+    assert float(priors.opacity_entropy) == pytest.approx(expected_entropy, rel=1e-5)
     assert float(priors.total - plain.total) == pytest.approx(
-        0.3 * expected_distortion + 0.02 * expected_opacity, rel=1e-4
+        0.3 * expected_distortion + 0.02 * expected_opacity + 0.05 * expected_entropy, rel=1e-4
     )
-    assert float(plain.distortion) == float(plain.opacity) == 0.0
+    assert float(plain.distortion) == float(plain.opacity) == float(plain.opacity_entropy) == 0.0
+
+
+def test_opacity_entropy_is_zero_at_empty_and_opaque_and_log2_at_half():
+    """The binary entropy against its closed form, and its gradient bounded by the clipping."""
+    acc = jnp.asarray([0.0, 1.0, 0.5, 0.25])
+    each = [float(opacity_entropy(acc[i : i + 1])) for i in range(4)]
+    assert each[0] == pytest.approx(0.0, abs=2e-3) and each[1] == pytest.approx(0.0, abs=2e-3)
+    assert each[2] == pytest.approx(np.log(2.0), rel=1e-6)
+    assert each[3] == pytest.approx(-(0.25 * np.log(0.25) + 0.75 * np.log(0.75)), rel=1e-6)
+    # d/da of the entropy is log((1 - a) / a): towards 0 below half, towards 1 above it.
+    grad = np.asarray(jax.grad(lambda a: opacity_entropy(a) * a.size)(jnp.asarray([0.1, 0.9, 1.0])))
+    np.testing.assert_allclose(grad[:2], [np.log(9.0), -np.log(9.0)], rtol=1e-5)
+    assert grad[2] == 0.0  # clipped: an opaque ray is left alone

@@ -1,4 +1,4 @@
-"""The depth-smoothness prior on unseen views (RegNeRF): its cameras, its patches, its term.
+"""The priors on unseen views (RegNeRF's depth smoothness, the opacity entropy): cameras, patches, terms.
 
 References: a hand-written sum of squared neighbour differences in float64, the geometry of
 the orbit (distance and elevation of the training cameras), and the full-image rays of the
@@ -160,3 +160,32 @@ def test_a_step_with_the_prior_draws_patches_and_reports_the_term(smooth_setup):
     assert int(new_state.step) == 1
     # Without the prior no patches are drawn.
     assert draw_batch(training_rays(dataset), state, 32).patches is None
+
+
+def test_the_unseen_entropy_alone_draws_patches_and_enters_with_its_weight():
+    """`loss.unseen_entropy_weight` without the smoothness prior: the patches are drawn and
+    rendered, and the total is the objective plus the weighted binary entropy of their opacities."""
+    overrides = [
+        "loss.unseen_entropy_weight=0.5",
+        "loss.smoothness_patches=2",
+        "loss.smoothness_patch_size=4",
+    ]
+    config = mx.load_config("configs/builtin.toml", [*TINY_OVERRIDES, *overrides])
+    dataset = mx.data.load_dataset(config.data)
+    data = training_rays(dataset, config.loss)
+    state = init_train_state(config, dataset)
+    batch = draw_batch(data, state, 32)
+    assert batch.patches is not None and batch.patches.batch_shape == (2 * 4 * 4,)
+    _, metrics = make_train_step(config)(state, batch)
+    terms, weights = metrics.terms, config.loss
+    # Each level's mean entropy lies in (0, log 2]; the smoothness term is not computed.
+    assert 0 < float(terms.unseen_entropy) <= 2 * np.log(2.0) + 1e-6
+    assert float(terms.smoothness) == 0.0 and float(terms.opacity_entropy) == 0.0
+    others = (
+        3 * (terms.mse_fine + weights.coarse_mse_weight * terms.mse_coarse)
+        + metrics.lambda_colour * terms.nll_colour
+        + weights.lambda_depth * terms.nll_depth
+        + weights.lambda_regen * terms.nll_regen
+    )
+    expected = 0.5 * float(terms.unseen_entropy)
+    assert float(terms.total - others) == pytest.approx(expected, rel=1e-3), float(terms.total)
