@@ -14,6 +14,7 @@ import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, GridField, HashEncoding, Skipping, TriPlaneEncoding, render_rays
 from mixnerf_eqx._config import replace_setting
 from mixnerf_eqx._field.grid import density_activation
+from mixnerf_eqx._loss import LossWeights
 from mixnerf_eqx.metrics import psnr
 
 GRID_OVERRIDES = [
@@ -306,3 +307,14 @@ def test_short_grid_run_learns_and_renders_with_skipping(tiny_grid_config, tiny_
     np.testing.assert_allclose(dense.rgb, sparse.rgb, atol=2e-6)
     trained = render_rays(result.model, rays, 64)
     np.testing.assert_array_equal(dense.rgb, trained.rgb)
+
+
+def test_the_quick_starts_settings_reach_its_baseline():
+    """The quick start's entropy prior and frustum sampling apply to its baseline too (a fair
+    comparison), and a field built from either samples the frustum's mean only."""
+    configs = [mx.load_config(f"configs/{name}.toml") for name in ("builtin_grid", "builtin_mipnerf_grid")]
+    weights = [LossWeights.from_config(config.loss, config.method) for config in configs]
+    assert [w.opacity_entropy for w in weights] == [0.01, 0.01]
+    assert not weights[1].uses_mixture  # the baseline: no mixture term, the same prior
+    for config in configs:
+        assert mx.build_model(config, key=jax.random.key(0)).field.scale_weighting is False
