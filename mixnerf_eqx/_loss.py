@@ -151,8 +151,9 @@ def loss_terms(
     """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C + R + P`.
 
     `R` is the field's own regulariser (a grid's total variation; 0 for the MLP field). `P`
-    holds the optional priors on the weights, both off in the paper's configs: the distortion
-    loss and the mean opacity, each summed over the two levels and averaged over rays.
+    holds the optional priors on the weights, all off in the paper's configs: the distortion
+    loss, the mean opacity and the opacity's binary entropy, each summed over the two levels and
+    averaged over rays (the unseen-view priors are added by `loss_fn`).
 
     `MSE = mean_rays ||rgb_fine - c||^2 + coarse_mse * mean_rays ||rgb_coarse - c||^2`, the
     squared error summed over the colour channels (paper eq. 11; the released `train.py`
@@ -249,7 +250,8 @@ def loss_fn(
     patches: RayBundle | None = None,
 ) -> tuple[Float[Array, ""], LossTerms]:
     """Renders `rays` (and the unseen-view `patches`, in the same pass) in training mode and
-    returns `(total loss, terms)`."""
+    returns `(total loss, terms)`, with the priors on the patches (depth smoothness, opacity
+    entropy) added where their weights are positive."""
     if patches is None or (weights.smoothness == 0 and weights.unseen_entropy == 0):
         outputs = model(rays, key=key)
         terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
