@@ -76,6 +76,10 @@ class GridConfig:
     coarse_to_fine_steps: int = 0  # reveal the levels coarse to fine over this many steps (0: off)
     density_noise: float = 0.0  # std of the raw-density noise in training
     density_activation: Literal["softplus", "exp"] = "softplus"  # raw density to density (exp: instant-ngp's)
+    # How the field reads the grid: per point under jax.vmap ("vmap"), or batched with a
+    # gradient that scatters once per level ("batched", faster on a CPU); the same values and
+    # gradients. "auto": batched on the CPU, vmap on other backends.
+    lookup: Literal["auto", "vmap", "batched"] = "auto"
 
 
 @dataclasses.dataclass(frozen=True)

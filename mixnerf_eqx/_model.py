@@ -86,10 +86,10 @@ class MixNeRF(eqx.Module):
         vmapped over rays and then over samples ran about 1.5x slower on the CPU:
         `benchmarks/README.md`, profile of the training step).
         """
-        field = jax.checkpoint(type(self.field).__call__) if self.remat else type(self.field).__call__
-        if keys is None:
-            return jax.vmap(lambda m, c, v: field(self.field, m, c, v))(means, covs, viewdirs)
-        return jax.vmap(lambda m, c, v, k: field(self.field, m, c, v, key=k))(means, covs, viewdirs, keys)
+        evaluate = type(self.field).evaluate_batch
+        if self.remat:
+            evaluate = jax.checkpoint(evaluate)
+        return evaluate(self.field, means, covs, viewdirs, keys)
 
     def evaluate(self, samples: RaySamples, rays: RayBundle, keys: RayKeys | None = None) -> FieldOutputs:
         """The field at every sample of a flat batch of rays (`keys`: one per ray, or `None`)."""
@@ -218,6 +218,7 @@ def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -
         density_bias=model_cfg.density_bias,
         rgb_padding=model_cfg.rgb_padding,
         mixture_heads=mixture_heads,
+        lookup=grid.lookup,
         key=decoder_key,
     )
 

@@ -174,6 +174,8 @@ _COSMETIC = {
         "max_nonfinite_steps",
     ),
     "data": ("data_dir", "dtu_mask_dir"),
+    # The same values and gradients either way: a run may move between a CPU and a GPU.
+    "grid": ("lookup",),
 }
 
 

@@ -70,6 +70,8 @@ JUSTIFIED_EXTRAS = frozenset(
         "kernel",
         # Hash grid: a level's table entries (fewer than the table size on coarse levels).
         "entries",
+        # Grid lookups: the texels or cell corners blended for one point.
+        "corners",
     }
 )
 

@@ -1,10 +1,11 @@
 import abc
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from .._custom_types import PRNGKey, Vec3
+from .._custom_types import PRNGKey, RayKeys, Vec3
 
 
 class FieldOutputs(eqx.Module):
@@ -64,6 +65,33 @@ class AbstractField(eqx.Module):
         - `key`: randomness for training-time regularisation (density noise); `None` at
           evaluation.
         """
+
+    def evaluate_batch(
+        self,
+        means: Float[Array, "batch 3"],
+        covs: Float[Array, "batch 3"],
+        viewdirs: Float[Array, "batch 3"],
+        keys: RayKeys | None = None,
+    ) -> FieldOutputs:
+        """The field at a flat batch of Gaussians (`keys`: one per point, or `None`).
+
+        `jax.vmap` of `__call__`. A field whose lookups gain from seeing the whole batch (the
+        grid field's batched lookups on a CPU) overrides this with the same values.
+        """
+        return vmap_field(self, means, covs, viewdirs, keys)
+
+
+def vmap_field(
+    field: AbstractField,
+    means: Float[Array, "batch 3"],
+    covs: Float[Array, "batch 3"],
+    viewdirs: Float[Array, "batch 3"],
+    keys: RayKeys | None = None,
+) -> FieldOutputs:
+    """`field.__call__` lifted to a flat batch of Gaussians by `jax.vmap`."""
+    if keys is None:
+        return jax.vmap(lambda m, c, v: field(m, c, v))(means, covs, viewdirs)
+    return jax.vmap(lambda m, c, v, k: field(m, c, v, key=k))(means, covs, viewdirs, keys)
 
 
 def safe_norm(vector: Vec3) -> Float[Array, ""]:
