@@ -23,6 +23,7 @@ from ._evaluate import Rendered, evaluate
 from ._interrupt import deferred_interrupts
 from ._progress import Progress
 from ._run import Run, grid_for_rendering, make_skipping, render_summary, restore_run, write_view_renders
+from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._typecheck import add_typecheck_argument, typecheck_argument
 from ._uncertainty import calibration_report, predict_views, write_uncertainty_maps
 from .data import DatasetError, evenly_spaced
@@ -69,6 +70,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
     add_typecheck_argument(parser)
+    add_compilation_cache_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser.parse_intermixed_args(argv)
 
@@ -221,6 +223,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    use_compilation_cache(args)
     try:
         with typecheck_argument(args), deferred_interrupts():
             _check_arguments(args)

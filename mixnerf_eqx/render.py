@@ -23,6 +23,7 @@ from ._interrupt import deferred_interrupts
 from ._progress import Progress
 from ._rays import RayBundle
 from ._run import Run, grid_for_rendering, make_skipping, restore_run
+from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._typecheck import add_typecheck_argument, typecheck_argument
 from ._video import render_video
 from .data import DatasetError
@@ -61,6 +62,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "(auto: if the run's occupancy.enabled)",
     )
     add_typecheck_argument(parser)
+    add_compilation_cache_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return parser.parse_intermixed_args(argv)
 
@@ -162,6 +164,7 @@ def run(args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    use_compilation_cache(args)
     try:
         with typecheck_argument(args), deferred_interrupts():
             _check_arguments(args)

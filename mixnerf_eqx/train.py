@@ -11,6 +11,7 @@ from pathlib import Path
 from ._cli import report_error
 from ._config import ConfigError, load_config, replace_setting
 from ._train import TrainingDiverged, fit
+from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._typecheck import add_typecheck_argument, typecheck_argument
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "builtin_grid.toml"
@@ -26,6 +27,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--data-dir", default=None, help="dataset root (default: data.data_dir, else $MIXNERF_DATA_DIR)"
     )
     add_typecheck_argument(parser)
+    add_compilation_cache_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument(
         "overrides", nargs="*", metavar="section.key=value", help="config overrides, e.g. train.max_steps=200"
@@ -85,6 +87,7 @@ def _train(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    use_compilation_cache(args)
     with typecheck_argument(args):
         return _train(args)
 
