@@ -18,12 +18,12 @@ import jax
 import numpy as np
 
 from ._cli import report_error
+from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._config import ConfigError
 from ._evaluate import Rendered, evaluate
 from ._interrupt import deferred_interrupts
 from ._progress import Progress
 from ._run import Run, grid_for_rendering, make_skipping, render_summary, restore_run, write_view_renders
-from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._typecheck import add_typecheck_argument, typecheck_argument
 from ._uncertainty import calibration_report, predict_views, write_uncertainty_maps
 from .data import DatasetError, evenly_spaced

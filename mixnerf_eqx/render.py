@@ -18,12 +18,12 @@ import jax
 import numpy as np
 
 from ._cli import report_error
+from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._config import ConfigError
 from ._interrupt import deferred_interrupts
 from ._progress import Progress
 from ._rays import RayBundle
 from ._run import Run, grid_for_rendering, make_skipping, restore_run
-from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._typecheck import add_typecheck_argument, typecheck_argument
 from ._video import render_video
 from .data import DatasetError

@@ -9,9 +9,9 @@ import sys
 from pathlib import Path
 
 from ._cli import report_error
+from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._config import ConfigError, load_config, replace_setting
 from ._train import TrainingDiverged, fit
-from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._typecheck import add_typecheck_argument, typecheck_argument
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "builtin_grid.toml"
