@@ -1346,8 +1346,9 @@ def run_quickstart(args: argparse.Namespace) -> None:
 
     Every run is a fresh process with a fresh run folder under `--runs-root`, one after another
     in the order working tree, revisions, for each seed in turn, so that the machine's state
-    drifts alike for all; with `--repeat-cached` each tree runs once more with the compilation
-    cache the first run filled (`JAX_COMPILATION_CACHE_DIR`). The table gives wall time, the
+    drifts alike for all; with `--repeat-cached` each tree runs the first seed once more with
+    the compilation cache its first run filled (`JAX_COMPILATION_CACHE_DIR`); other runs have
+    no cache. The table gives wall time, the
     median step time (from `train_log.jsonl`, steps after the 20th), the step-time ratio to the
     first revision, and the test metrics; `section.key=value` overrides apply to every run.
     """
@@ -1363,9 +1364,10 @@ def run_quickstart(args: argparse.Namespace) -> None:
             for label, tree in trees:
                 tag = label.replace(" ", "-")
                 cache = scratch / f"cache-{tag}"
-                passes = [("cold", None)] + ([("cached", cache)] if args.repeat_cached else [])
+                cached = args.repeat_cached and seed == args.seeds[0]
+                passes = [("cold", None)] + ([("cached", cache)] if cached else [])
                 for cache_label, cache_dir in passes:
-                    if cache_label == "cold" and args.repeat_cached:
+                    if cache_label == "cold" and cached:
                         cache_dir = cache  # the cold run fills the cache the second one reads
                         shutil.rmtree(cache, ignore_errors=True)
                     run_dir = runs_root / f"{tag}-seed{seed}-{cache_label}"
