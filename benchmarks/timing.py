@@ -1320,6 +1320,8 @@ def time_quickstart(
     fresh process and run folder: wall time, step rate from the run's log, test metrics."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    # No cache unless one is given (the commands otherwise use one of their own).
+    env["MIXNERF_COMPILATION_CACHE"] = "off"
     if cache_dir is not None:
         env["JAX_COMPILATION_CACHE_DIR"] = str(cache_dir)
     command = [sys.executable, *QUICKSTART_COMMAND, f"train.run_dir={json.dumps(str(run_dir))}", *overrides]
