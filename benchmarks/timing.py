@@ -233,14 +233,33 @@ def step_rows(config: mx.Config, dataset: Dataset, repeats: int, *, loss: bool =
     return rows
 
 
+def summed_encoding(field: mx.GridField, points: jax.Array) -> jax.Array:
+    """A grid field's encoding alone at points of `[-1, 1]^3`, as the field reads it (per point
+    under `jax.vmap`, or batched: `grid.lookup`), its features summed."""
+    if field.lookup == "batched":
+        rows = field.encoding.encode_batch(points)
+    else:
+        rows = jax.vmap(field.encoding)(points)
+    return jnp.sum(rows)
+
+
 def field_rows(config: mx.Config, model: mx.MixNeRF, repeats: int) -> dict[str, dict]:
+    """The field's forward and forward + backward over a step's points; for a grid field, its
+    encoding alone too (the decoder and heads are the difference)."""
     points = field_points(config, jax.random.key(2))
-    return {
+    rows = {
         "field forward + backward": timed(
             eqx.filter_jit(eqx.filter_grad(summed_field)), model, *points, repeats=repeats
         ),
         "field forward": timed(eqx.filter_jit(summed_field), model, *points, repeats=repeats),
     }
+    if isinstance(model.field, mx.GridField):
+        unit = jnp.clip(points[0] / 2.0, -1.0, 1.0)
+        rows["encoding forward + backward"] = timed(
+            eqx.filter_jit(eqx.filter_grad(summed_encoding)), model.field, unit, repeats=repeats
+        )
+        rows["encoding forward"] = timed(eqx.filter_jit(summed_encoding), model.field, unit, repeats=repeats)
+    return rows
 
 
 def random_field_outputs(model: mx.MixNeRF, key: jax.Array, batch: int, samples: int) -> mx.FieldOutputs:
@@ -381,6 +400,8 @@ def run_profile(args: argparse.Namespace) -> None:
     - `loss forward`: the render and the loss, no gradient.
     - `field forward + backward`: the MLP (with its encodings) alone over the step's points,
       its outputs summed: the ceiling of `timing.py step`; `field forward`: without gradient.
+      For a grid field, `encoding forward (+ backward)`: the grid lookups alone at as many
+      points, as the field reads them (`grid.lookup`); the decoder is the difference.
     - `step, width-N field`: the whole step with the MLP shrunk to `--narrow-width`
       (encodings, layer count and everything else unchanged): what the step costs besides
       the dense layers' products.
@@ -396,9 +417,12 @@ def run_profile(args: argparse.Namespace) -> None:
     rows = step_rows(config, dataset, args.repeats)
     rows.update(field_rows(config, mx.init_train_state(config, dataset).model, args.repeats))
     width = args.narrow_width
-    narrow = mx.load_config(
-        args.config, [*args.overrides, f"model.width={width}", f"model.view_width={width}"]
+    widths = (
+        [f"grid.decoder_width={width}", f"grid.view_width={width}"]
+        if config.model.field == "grid"
+        else [f"model.width={width}", f"model.view_width={width}"]
     )
+    narrow = mx.load_config(args.config, [*args.overrides, *widths])
     rows[f"step, width-{width} field"] = step_rows(narrow, dataset, args.repeats, loss=False)["step"]
     narrow_model = mx.init_train_state(narrow, dataset).model
     rows[f"field forward + backward, width {width}"] = field_rows(narrow, narrow_model, args.repeats)[
@@ -410,9 +434,18 @@ def run_profile(args: argparse.Namespace) -> None:
     for row in rows.values():
         row["share_of_step"] = row["median_s"] / step_s
     m = config.model
+    if m.field == "grid":
+        g = config.grid
+        lookup = mx.init_train_state(config, dataset).model.field.lookup
+        field_text = (
+            f"grid {g.encoding} {g.levels} levels {g.min_resolution}-{g.max_resolution} x {g.features}, "
+            f"decoder {g.decoder_width}/{g.view_width}, lookup {lookup}"
+        )
+    else:
+        field_text = f"MLP {m.depth}x{m.width}, matmul {m.matmul_dtype}"
     print(
         f"\n{config.train.batch_size} rays, {m.num_coarse_samples}+{m.num_fine_samples} samples, "
-        f"MLP {m.depth}x{m.width}, matmul {m.matmul_dtype}, remat {m.remat}; {jax.devices()}\n"
+        f"{field_text}, remat {m.remat}; {jax.devices()}\n"
     )
     harness.print_table(
         ("part", "ms (median)", "share of the step", "first call s"),

@@ -23,6 +23,7 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._checkpoint import load_checkpoint as load_checkpoint
     from ._checkpoint import read_checkpoint_meta as read_checkpoint_meta
     from ._checkpoint import save_checkpoint as save_checkpoint
+    from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
     from ._config import Config as Config
     from ._config import ConfigError as ConfigError
     from ._config import config_from_dict as config_from_dict
