@@ -398,8 +398,9 @@ def run_profile(args: argparse.Namespace) -> None:
     """Where a training step's time goes: the step against its parts, each compiled and timed alone.
 
     Every row is one jitted function on the step's own shapes, compiled first and then timed
-    `--repeats` times, each waited for; the median is reported with its share of the full
-    step. All rows run in one process, one after another, so their ratios are comparable:
+    `--repeats` times, each waited for; the fastest call and the median are reported, with the
+    fastest call's share of the full step. All rows run in one process, one after another, so
+    their ratios are comparable:
 
     - `step`: the batch draw and the library's training step (`make_train_step`: sample-space
       annealing, render, loss, gradient, optimiser, non-finite guard) in one function.
