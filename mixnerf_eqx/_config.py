@@ -29,6 +29,8 @@ class DataConfig:
     num_train_views: int = 4  # number of training views
     num_test_views: int = 8  # built-in scene: number of held-out test views
     max_test_views: int = 0  # files: keep this many of the protocol's test views, evenly spaced (0: all)
+    num_val_views: int = 4  # built-in scene: number of validation views (extra cameras; 0: none)
+    max_val_views: int = 8  # files: validation views, neither train nor test, evenly spaced (0: all)
     near: float = 0.0  # with far > 0: replaces the dataset's near bound
     far: float = 0.0  # > 0: replaces the dataset's far bound (transforms.json scenes need no bounds)
     image_downscale: int = 1  # files: average FxF pixel blocks of the format's resolution (cameras too)
@@ -74,6 +76,7 @@ class GridConfig:
     scale_weighting: bool = True  # weight levels by the frustum's size (Zip-NeRF's anti-aliasing)
     tv_weight: float = 0.0  # weight of total variation on the planes (the tri-plane encoding)
     coarse_to_fine_steps: int = 0  # reveal the levels coarse to fine over this many steps (0: off)
+    coarse_to_fine_fraction: float = 0.0  # > 0: ... over this fraction of the run instead (see below)
     density_noise: float = 0.0  # std of the raw-density noise in training
     density_activation: Literal["softplus", "exp"] = "softplus"  # raw density to density (exp: instant-ngp's)
     # How the field reads the grid: per point under jax.vmap ("vmap"), or batched with a
@@ -88,6 +91,7 @@ class LossConfig:
     lambda_colour_start: float = 4.0  # lambda_C at step 1
     lambda_colour_end: float = 1e-3  # lambda_C from `lambda_colour_steps` on
     lambda_colour_steps: int = 512  # length of lambda_C's linear ramp
+    lambda_colour_fraction: float = 0.0  # > 0: the ramp lasts this fraction of the run instead
     lambda_depth: float = 1e-3  # lambda_D (Blender 4-view)
     lambda_regen: float = 1e-4  # lambda_hat_C (Blender 4-view)
     nll_levels: Literal["coarse", "both"] = "coarse"  # levels the NLLs apply to (released: coarse)
@@ -110,6 +114,7 @@ class OptimConfig:
     lr_init: float = 1e-3  # initial learning rate (Blender: 1e-3, LLFF/DTU: 2e-3)
     lr_final: float = 1e-5  # final learning rate of the log-linear decay
     warmup_steps: int = 512  # length of the sine warm-up
+    warmup_fraction: float = 0.0  # > 0: the warm-up lasts this fraction of the run instead
     decay_steps: int = (
         0  # steps of the log-linear decay (0: train.max_steps; a continued run keeps its first)
     )
@@ -122,11 +127,12 @@ class TrainConfig:
     max_steps: int = 78125  # training steps (Blender 4-view: 500 epochs at 4096 rays)
     batch_size: int = 4096  # rays per step, all drawn from one random training image
     anneal_steps: int = 256  # sample-space annealing length N (0 turns it off)
+    anneal_fraction: float = 0.0  # > 0: annealing lasts this fraction of the run instead
     anneal_start: float = 0.5  # annealing: initial fraction p of [near, far]
     anneal_mid: float = 0.5  # annealing: centre m of the initial interval
     seed: int = 0  # seed of the model initialisation and of every random draw
-    eval_every: int = 0  # evaluate on held-out views every this many steps (0: only at the end)
-    num_eval_views: int = 2  # held-out views rendered by the periodic evaluation
+    eval_every: int = 0  # evaluate on validation views every this many steps (0: only at the end)
+    num_eval_views: int = 2  # validation views rendered by the periodic evaluation
     checkpoint_every: int = 1000  # write a checkpoint every this many steps (and at the end)
     render_chunk: int = 4096  # rays rendered at once when rendering images
     run_dir: str = "runs/builtin"  # where checkpoints, metrics and renders go
@@ -165,6 +171,7 @@ class OccupancyConfig:
 class Config:
     name: str = "mixnerf"  # a name for the run
     reproduces: str = ""  # the paper cell this config reproduces, if any
+    chosen_on: str = ""  # which views chose the settings (the paper's; validation views; test: tuned)
     method: Literal["mixnerf", "mipnerf"] = "mixnerf"  # MixNeRF, or its mip-NeRF baseline (no mixture)
     data: DataConfig = DataConfig()
     model: ModelConfig = ModelConfig()
@@ -192,6 +199,15 @@ def _within(
 
 
 _POSITIVE = ((lambda value: value > 0), "must be positive")
+
+# The schedules that may be given in steps or as a fraction of the run: `section.name_steps`
+# and `section.name_fraction`.
+_SCHEDULE_KEYS = (
+    ("optim", "warmup"),
+    ("loss", "lambda_colour"),
+    ("train", "anneal"),
+    ("grid", "coarse_to_fine"),
+)
 _INT32_MAX = 2**31 - 1
 
 # Range of every numeric setting: (section.key, check, what the check asks).
@@ -230,6 +246,8 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
         (key, *_at_least(0))
         for key in (
             "data.max_test_views",
+            "data.num_val_views",
+            "data.max_val_views",
             "data.near",
             "data.far",
             "model.skip_layer",
@@ -277,6 +295,7 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
     ("model.max_deg", *_at_least(1)),
     ("train.max_steps", lambda value: value <= _INT32_MAX, f"must be at most {_INT32_MAX} (int32 steps)"),
     ("train.anneal_start", *_within(0, 1, low_open=True)),
+    *((key, *_within(0, 1)) for key in (f"{section}.{name}_fraction" for section, name in _SCHEDULE_KEYS)),
     ("train.anneal_mid", *_within(0, 1)),
     ("occupancy.resolution", *_at_least(2)),
     ("occupancy.decay", *_within(0, 1)),
@@ -323,6 +342,31 @@ def _consistency_problems(config: "Config") -> list[str]:
     return problems
 
 
+@dataclasses.dataclass(frozen=True)
+class ScheduleSteps:
+    """The lengths in steps of the schedules that a config may give either way (a
+    `*_fraction` > 0 of the run replaces the `*_steps` count). The run's length is the
+    learning-rate decay's horizon, `optim.decay_steps` or else `train.max_steps`, so that a
+    run continued to more steps keeps its schedules."""
+
+    warmup: int
+    lambda_colour: int
+    anneal: int
+    coarse_to_fine: int
+
+
+def schedule_steps(config: "Config") -> ScheduleSteps:
+    """Each schedule's length in steps (see `ScheduleSteps`); a fraction rounds to a whole
+    number of steps, at least 1."""
+    horizon = config.optim.decay_steps or config.train.max_steps
+    lengths = {}
+    for section, name in _SCHEDULE_KEYS:
+        fraction = _setting(config, f"{section}.{name}_fraction")
+        steps = _setting(config, f"{section}.{name}_steps")
+        lengths[name] = max(1, round(fraction * horizon)) if fraction > 0 else steps
+    return ScheduleSteps(**lengths)
+
+
 def validate(config: "Config") -> None:
     """Raises `ConfigError` naming every setting whose value no run can use."""
     problems = [
@@ -335,6 +379,7 @@ def validate(config: "Config") -> None:
         raise ConfigError("; ".join(problems))
 
 
+_TOP_LEVEL = ("name", "reproduces", "chosen_on", "method")
 _SECTIONS = {
     "data": DataConfig,
     "model": ModelConfig,
@@ -418,11 +463,11 @@ def config_from_dict(values: dict[str, Any], source: str = "<dict>", base: Confi
             if not isinstance(value, dict):
                 raise ConfigError(f"{source}: [{key}] must be a table")
             section_updates[key] = _apply(getattr(base, key), value, f"{source} [{key}]")
-        elif key in ("name", "reproduces", "method"):
+        elif key in _TOP_LEVEL:
             top_updates[key] = _coerce(value, typing.get_type_hints(Config)[key], f"{source}: {key}")
         else:
             raise ConfigError(
-                f"{source}: unknown key {key!r} (known: name, reproduces, method, {', '.join(_SECTIONS)})"
+                f"{source}: unknown key {key!r} (known: {', '.join(_TOP_LEVEL)}, {', '.join(_SECTIONS)})"
             )
     try:
         return dataclasses.replace(base, **top_updates, **section_updates)

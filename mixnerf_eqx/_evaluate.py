@@ -3,7 +3,7 @@
 import dataclasses
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -232,26 +232,30 @@ def evaluate(
     with_lpips: bool = True,
     on_view: Callable[[int, dict[str, Any], Rendered], None] | None = None,
     skipping: Skipping | None = None,
+    split: Literal["test", "val", "train"] = "test",
 ) -> Evaluation:
-    """Renders the test views one at a time and scores each.
+    """Renders the views of one split one at a time and scores each.
 
     **Arguments:**
 
     - `model`: the trained model.
-    - `dataset`: the scene; its `test` views are rendered.
+    - `dataset`: the scene; the views of its split `split` are rendered.
     - `chunk`: rays rendered at once.
-    - `view_ids`: positions of the test views to use (default: all).
+    - `view_ids`: positions of the split's views to use (default: all).
     - `with_lpips`: compute LPIPS where its weights are installed.
     - `on_view`: called as `on_view(position, metrics, rendered view)` after each view,
       e.g. to write its PNGs, so that nothing but the metrics has to be kept.
     - `skipping`: passed to `render_rays`.
+    - `split`: `"test"` (the protocol's test views, to score once for the record), `"val"`
+      (the validation views, to choose settings on) or `"train"`.
 
     **Returns:**
 
     An `Evaluation`.
     """
     started = time.perf_counter()
-    views = dataset.test if view_ids is None else dataset.test.select(view_ids)
+    views = dataset.split(split)
+    views = views if view_ids is None else views.select(view_ids)
     per_view = []
     counts = RenderCounts()
     for index in range(views.num_views):

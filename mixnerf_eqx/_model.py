@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._config import Config
+from ._config import Config, schedule_steps
 from ._custom_types import FourKeysPerRay, PRNGKey, RayKeys
 from ._field import AbstractField, FieldOutputs, GridField, HashEncoding, MipNeRFField, TriPlaneEncoding
 from ._field.grid import level_resolutions
@@ -212,7 +212,7 @@ def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -
         viewdir_max_deg=model_cfg.viewdir_max_deg,
         scale_weighting=grid.scale_weighting,
         tv_weight=grid.tv_weight,
-        coarse_to_fine_steps=grid.coarse_to_fine_steps,
+        coarse_to_fine_steps=schedule_steps(config).coarse_to_fine,
         density_activation=grid.density_activation,
         density_noise=grid.density_noise,
         density_bias=model_cfg.density_bias,

@@ -173,14 +173,16 @@ _COSMETIC = {
         "run_dir",
         "max_nonfinite_steps",
     ),
-    "data": ("data_dir", "dtu_mask_dir"),
+    # Validation views are only scored: they change no step.
+    "data": ("data_dir", "dtu_mask_dir", "num_val_views", "max_val_views"),
     # The same values and gradients either way: a run may move between a CPU and a GPU.
     "grid": ("lookup",),
 }
 
 
 def _comparable(config: dict[str, Any]) -> dict[str, Any]:
-    kept = {key: value for key, value in config.items() if key not in ("name", "reproduces", "occupancy")}
+    described = ("name", "reproduces", "chosen_on", "occupancy")
+    kept = {key: value for key, value in config.items() if key not in described}
     for section, keys in _COSMETIC.items():
         kept[section] = {k: v for k, v in config.get(section, {}).items() if k not in keys}
     # A run may be continued to more steps: what the trajectory depends on is the horizon of

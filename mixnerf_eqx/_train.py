@@ -48,7 +48,7 @@ from ._train_state import (
     training_rays,
     update_grid,
 )
-from .data import Dataset, load_dataset
+from .data import Dataset, evenly_spaced, load_dataset
 
 
 class TrainingDiverged(RuntimeError):
@@ -114,8 +114,8 @@ class _RunLog:
 
     def evaluation(self, done: int, means: dict[str, Any]) -> None:
         shown = ", ".join(f"{k} {v:.4f}" for k, v in means.items() if v is not None)
-        self.progress.write(f"step {done}: held-out {shown}")
-        self._write({"step": done, "eval": means})
+        self.progress.write(f"step {done}: validation {shown}")
+        self._write({"step": done, "eval": means, "split": "val"})
 
     def _write(self, entry: dict[str, Any]) -> None:
         # Flushed at once, so that `tail -f` follows the run and a crash loses no entry.
@@ -237,12 +237,14 @@ def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) 
 
 
 def _periodic_evaluation(config: Config, dataset: Dataset, state: TrainState) -> dict[str, Any]:
-    """Held-out metrics of the first `train.num_eval_views` test views, without LPIPS."""
-    ids = list(range(min(config.train.num_eval_views, dataset.test.num_views)))
+    """Metrics of `train.num_eval_views` validation views, evenly spaced, without LPIPS: the
+    test views are scored once, at the end."""
+    assert dataset.val is not None
+    ids = evenly_spaced(dataset.val.num_views, min(config.train.num_eval_views, dataset.val.num_views))
     skipping = None if state.grid is None else make_skipping(config.occupancy, state.grid)
     chunk = config.train.render_chunk if skipping is None else config.occupancy.chunk
     return evaluate(
-        state.model, dataset, chunk=chunk, view_ids=ids, with_lpips=False, skipping=skipping
+        state.model, dataset, chunk=chunk, view_ids=ids, with_lpips=False, skipping=skipping, split="val"
     ).means
 
 
@@ -291,6 +293,10 @@ def fit(
         parallel = DataParallel(mesh)
         state, data = parallel.replicate(state), parallel.replicate(data)
         take_step, draw = parallel.step(take_step), parallel.draw(draw_batch)
+    eval_every = train.eval_every
+    if eval_every and dataset.val is None:
+        print(f"no periodic evaluation: {dataset.name} has no validation views ({dataset.val_source})")
+        eval_every = 0
     log = _RunLog(run_dir, start, train.max_steps, progress)
     guard = _Guard(train.max_nonfinite_steps, run_dir)
     try:
@@ -299,7 +305,7 @@ def fit(
         with deferred_interrupts():
             for done in range(start + 1, last_step + 1):
                 state, metrics = take_step(state, draw(data, state, train.batch_size))
-                evaluate_now = _due(done, train.eval_every) and done < train.max_steps
+                evaluate_now = _due(done, eval_every) and done < train.max_steps
                 checkpoint_now = _due(done, train.checkpoint_every)
                 log_now = _due(done, log_every) or done == last_step
                 guard.defer(done, metrics.skipped, read_now=log_now or evaluate_now or checkpoint_now)
@@ -355,7 +361,8 @@ def _final_report(
     metrics: dict[str, Any],
     progress: bool,
 ) -> dict[str, Any]:
-    """Renders and scores every test view, writes `metrics.json` (and the PNGs)."""
+    """Scores every validation view, renders and scores every test view, writes
+    `metrics.json` (and the test views' PNGs)."""
     renders = run_dir / "renders"
     bar = Progress(dataset.test.num_views, unit="view", enabled=progress)
 
@@ -378,6 +385,11 @@ def _final_report(
         )
         skipping = make_skipping(config.occupancy, grid)
     chunk = config.train.render_chunk if skipping is None else config.occupancy.chunk
+    validation = None
+    if dataset.val is not None:
+        # Scored before the test views and written beside them: what later choices of
+        # settings read (`benchmarks/`, sweeps), so that the test views choose nothing.
+        validation = evaluate(state.model, dataset, chunk=chunk, skipping=skipping, split="val").means
     try:
         result: Evaluation = evaluate(
             state.model, dataset, chunk=chunk, on_view=write_view, skipping=skipping
@@ -387,6 +399,11 @@ def _final_report(
     metrics = {
         **metrics,
         "scene": dataset.name,
+        "val": validation,
+        "val_views": {
+            "count": 0 if dataset.val is None else dataset.val.num_views,
+            "source": dataset.val_source,
+        },
         "test": result.means,
         "per_view": result.per_view,
         "render": render_summary(result.counts, result.seconds, len(result.per_view), grid, choice),

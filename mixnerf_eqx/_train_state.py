@@ -18,7 +18,7 @@ import optax
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
 from ._camera_path import orbit_path, spiral_path
-from ._config import Config, LossConfig, OccupancyConfig, OptimConfig
+from ._config import Config, LossConfig, OccupancyConfig, OptimConfig, schedule_steps
 from ._custom_types import PoseStack, PRNGKey
 from ._loss import LossTerms, LossWeights, loss_fn
 from ._model import MixNeRF, build_model
@@ -131,7 +131,9 @@ def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = 
     )
     optim = config.optim
     horizon = optim.decay_steps or config.train.max_steps
-    learning_rate = learning_rate_schedule(optim.lr_init, optim.lr_final, horizon, optim.warmup_steps)
+    learning_rate = learning_rate_schedule(
+        optim.lr_init, optim.lr_final, horizon, schedule_steps(config).warmup
+    )
     optimizer = make_optimizer(optim, learning_rate)
     grid = make_occupancy_grid(config.occupancy, dataset) if config.occupancy.enabled else None
     return TrainState(
@@ -280,17 +282,18 @@ def make_train_step(
     """
     weights = LossWeights.from_config(config.loss, config.method)
     loss_cfg, train_cfg = config.loss, config.train
+    lengths = schedule_steps(config)
 
     def train_step(state: TrainState, batch: Batch) -> tuple[TrainState, StepMetrics]:
         step_number = state.step + 1
         rays = anneal_sample_space(
-            batch.rays, step_number, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid
+            batch.rays, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
         )
         lambda_colour = linear_ramp(
             step_number,
             loss_cfg.lambda_colour_start,
             loss_cfg.lambda_colour_end,
-            loss_cfg.lambda_colour_steps,
+            lengths.lambda_colour,
         )
 
         def scheduled_loss(model: MixNeRF, *args, **kwargs):
@@ -302,7 +305,7 @@ def make_train_step(
         patches = batch.patches
         if patches is not None:
             patches = anneal_sample_space(
-                patches, step_number, train_cfg.anneal_steps, train_cfg.anneal_start, train_cfg.anneal_mid
+                patches, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
             )
         (_, terms), grads = eqx.filter_value_and_grad(scheduled_loss, has_aux=True)(
             state.model, rays, batch.rgb, lambda_colour, weights, key=_step_keys(state)[1], patches=patches

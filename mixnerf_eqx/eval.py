@@ -45,7 +45,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--chunk", type=int, default=None, help="rays rendered at once, at most a view's (default: the run's)"
     )
     parser.add_argument(
-        "--max-views", type=int, default=0, help="evaluate this many test views, evenly spaced (0: all)"
+        "--split",
+        choices=("test", "val"),
+        default="test",
+        help="the views to score: the protocol's test views (scored once, for the record), or the "
+        "validation views that settings are chosen on (default: test)",
+    )
+    parser.add_argument(
+        "--max-views",
+        type=int,
+        default=0,
+        help="evaluate this many of the split's views, evenly spaced (0: all)",
     )
     parser.add_argument(
         "--skipping",
@@ -54,7 +64,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="skip empty space and finished rays with an occupancy grid built from the checkpoint "
         "(auto: if the run's occupancy.enabled)",
     )
-    parser.add_argument("--out", type=Path, default=None, help="output folder (default: RUN_DIR/eval)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default: RUN_DIR/eval, or RUN_DIR/eval_val for --split val)",
+    )
     parser.add_argument("--no-renders", action="store_true", help="write no PNGs")
     parser.add_argument(
         "--uncertainty",
@@ -141,14 +156,18 @@ def run(args: argparse.Namespace) -> dict:
     config, dataset = restored.config, restored.dataset
     grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
     chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
+    try:
+        views = dataset.split(args.split)
+    except ValueError as error:
+        raise SystemExit(f"error: {error}") from None
     view_ids = None
     if args.max_views > 0:
-        view_ids = evenly_spaced(dataset.test.num_views, min(args.max_views, dataset.test.num_views))
-    num_views = dataset.test.num_views if view_ids is None else len(view_ids)
-    out = args.out or run_dir / "eval"
+        view_ids = evenly_spaced(views.num_views, min(args.max_views, views.num_views))
+    num_views = views.num_views if view_ids is None else len(view_ids)
+    out = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
     out.mkdir(parents=True, exist_ok=True)
     bar = Progress(num_views, unit="view", enabled=not args.no_progress)
-    chosen = dataset.test if view_ids is None else dataset.test.select(view_ids)
+    chosen = views if view_ids is None else views.select(view_ids)
 
     def after_view(index: int, entry: dict, rendered: Rendered) -> None:
         if not args.no_renders:
@@ -165,6 +184,7 @@ def run(args: argparse.Namespace) -> dict:
             with_lpips=not args.no_lpips,
             on_view=after_view,
             skipping=skipping,
+            split=args.split,
         )
     finally:
         bar.close()
@@ -180,6 +200,7 @@ def run(args: argparse.Namespace) -> dict:
         "checkpoint": str(restored.checkpoint),
         "step": restored.step,
         "scene": dataset.name,
+        "split": args.split,
         "num_views": num_views,
         "lpips": lpips_note,
         "seconds": evaluation.seconds + grid_seconds,

@@ -208,3 +208,72 @@ def test_schedules_count_steps_from_one(tiny_config, tiny_scene):
     moved = change[change > 0]
     np.testing.assert_allclose(np.median(moved), float(lr_1), rtol=1e-3)
     assert float(lr_1) > 2 * float(learning_rate_schedule(optim.lr_init, optim.lr_final, 150, 20)(0))
+
+
+def _with(config, section, **changes):
+    return dataclasses.replace(config, **{section: dataclasses.replace(getattr(config, section), **changes)})
+
+
+def test_schedules_given_as_fractions_of_the_run(tiny_config, tiny_scene):
+    config = _with_train(tiny_config, max_steps=400)
+    config = _with(config, "optim", warmup_fraction=0.1)
+    config = _with(config, "loss", lambda_colour_fraction=0.25)
+    config = _with(_with(config, "train", anneal_fraction=0.05), "grid", coarse_to_fine_fraction=0.5)
+    lengths = mx.schedule_steps(config)
+    assert (lengths.warmup, lengths.lambda_colour, lengths.anneal, lengths.coarse_to_fine) == (
+        40,
+        100,
+        20,
+        200,
+    )
+    # Without fractions, the step counts as given.
+    plain = mx.schedule_steps(tiny_config)
+    assert plain.warmup == tiny_config.optim.warmup_steps
+    assert plain.lambda_colour == tiny_config.loss.lambda_colour_steps
+    # A continued run keeps the horizon of its first length, so its schedules stay.
+    continued = _with(_with_train(config, max_steps=4000), "optim", decay_steps=400)
+    assert mx.schedule_steps(continued) == lengths
+    # A tiny fraction still lasts a step.
+    assert mx.schedule_steps(_with(config, "optim", warmup_fraction=1e-6)).warmup == 1
+    # The training step uses them: learning rate and lambda_C at step 1 follow the closed forms.
+    state = init_train_state(config, tiny_scene)
+    batch = draw_batch(training_rays(tiny_scene), state, config.train.batch_size)
+    _, metrics = make_train_step(config)(state, batch)
+    expected_lr = learning_rate_schedule(config.optim.lr_init, config.optim.lr_final, 400, 40)(1)
+    expected_ramp = linear_ramp(1, config.loss.lambda_colour_start, config.loss.lambda_colour_end, 100)
+    assert float(metrics.learning_rate) == pytest.approx(float(expected_lr), rel=1e-6)
+    assert float(metrics.lambda_colour) == pytest.approx(float(expected_ramp), rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "key", ["optim.warmup_fraction", "loss.lambda_colour_fraction", "train.anneal_fraction"]
+)
+def test_schedule_fractions_out_of_range(key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        mx.load_config("configs/builtin.toml", [f"{key}=1.5"])
+
+
+def test_periodic_evaluation_renders_validation_views(tiny_config, tiny_scene):
+    config = _with_train(tiny_config, max_steps=4, eval_every=2, num_eval_views=2)
+    result = fit(config, dataset=tiny_scene, progress=False, write_renders=False, log_every=1)
+    log = [json.loads(line) for line in (result.run_dir / "train_log.jsonl").read_text().splitlines()]
+    evaluations = [entry for entry in log if "eval" in entry]
+    assert [entry["step"] for entry in evaluations] == [2] and evaluations[0]["split"] == "val"
+    # The final report scores every validation view beside the test views.
+    written = json.loads((result.run_dir / "metrics.json").read_text())
+    assert written["val_views"] == {"count": tiny_scene.val.num_views, "source": tiny_scene.val_source}
+    again = mx.evaluate(result.model, tiny_scene, split="val", with_lpips=False)
+    assert [entry["view"] for entry in again.per_view] == list(tiny_scene.val.ids)
+    assert written["val"]["psnr"] == pytest.approx(again.means["psnr"], abs=1e-4)
+    assert written["val"]["psnr"] != pytest.approx(written["test"]["psnr"], abs=1e-3)
+
+
+def test_no_periodic_evaluation_without_validation_views(tiny_config, tiny_scene, capsys):
+    scene = dataclasses.replace(tiny_scene, val=None, val_source="none here")
+    config = _with_train(tiny_config, max_steps=2, eval_every=1)
+    result = fit(config, dataset=scene, progress=False, write_renders=False, log_every=1)
+    assert "no periodic evaluation" in capsys.readouterr().out
+    assert not [
+        line for line in (result.run_dir / "train_log.jsonl").read_text().splitlines() if '"eval"' in line
+    ]
+    assert result.metrics["val"] is None and "test" in result.metrics

@@ -93,17 +93,21 @@ class Views:
 
 @dataclasses.dataclass(frozen=True)
 class Dataset:
-    """A scene split into training and held-out test views.
+    """A scene split into training, validation and held-out test views.
 
     **Fields:**
 
     - `name`: a human-readable scene name.
-    - `train`, `test`: the two splits.
+    - `train`, `test`: the protocol's training and test views.
+    - `val`: validation views, disjoint from both: the views that settings are chosen on and
+      that the periodic evaluation of training renders, so that the test views are scored
+      once, at the end. `None` when the scene has no view left over (see `val_source`).
+    - `val_source`: where the validation views come from, for reports.
     - `near`, `far`: sampling bounds along the unnormalised ray directions.
     - `white_background`: composite renders on white (Blender-style scenes).
     - `frustum`: `"cone"` for bounded scenes, `"cylinder"` for NDC (LLFF) scenes.
 
-    Build the rays of either split with `rays_for_views`.
+    Build the rays of any split with `rays_for_views`; `split(name)` picks one by name.
     """
 
     name: str
@@ -113,10 +117,29 @@ class Dataset:
     far: float
     white_background: bool = True
     frustum: Literal["cone", "cylinder"] = "cone"
+    val: Views | None = None
+    val_source: str = "none"
 
     def __post_init__(self):
         if not 0 <= self.near < self.far:
             raise ValueError(f"need 0 <= near < far, got near={self.near}, far={self.far}")
+
+    def split(self, name: str) -> Views:
+        """The views of split `name` (`"train"`, `"val"` or `"test"`); a clear error when the
+        scene has no validation views. (`str`, not a `Literal`: a wrong name gets this
+        method's message, not a type-check error.)"""
+        if name not in SPLITS:
+            raise ValueError(f"unknown split {name!r}; choose one of {', '.join(SPLITS)}")
+        views = getattr(self, name)
+        if views is None:
+            raise ValueError(
+                f"{self.name} has no validation views ({self.val_source}); score on another split, "
+                "or train on fewer views so that some are left over"
+            )
+        return views
+
+
+SPLITS = ("train", "val", "test")
 
 
 def rays_for_views(views: Views, near: float, far: float) -> RayBundle:

@@ -121,6 +121,7 @@ def _load_builtin(config: DataConfig) -> Dataset:
         resolution=config.resolution,
         num_train_views=config.num_train_views,
         num_test_views=config.num_test_views,
+        num_val_views=config.num_val_views,
     )
 
 
@@ -185,6 +186,7 @@ def load_dataset(config: DataConfig) -> Dataset:
             num_train_views=config.num_train_views,
             protocol=config.protocol,
             max_test_views=config.max_test_views,
+            max_val_views=config.max_val_views,
             downscale=config.image_downscale,
         )
     elif config.dataset == "llff":
@@ -192,6 +194,7 @@ def load_dataset(config: DataConfig) -> Dataset:
             scene_dir,
             num_train_views=config.num_train_views,
             max_test_views=config.max_test_views,
+            max_val_views=config.max_val_views,
             downscale=config.image_downscale,
         )
     elif config.dataset == "dtu":
@@ -201,6 +204,7 @@ def load_dataset(config: DataConfig) -> Dataset:
             mask_roots=_mask_roots(config, data_root(config)),
             masks_required=bool(config.dtu_mask_dir),
             max_test_views=config.max_test_views,
+            max_val_views=config.max_val_views,
             downscale=config.image_downscale,
         )
     else:
@@ -208,6 +212,7 @@ def load_dataset(config: DataConfig) -> Dataset:
             scene_dir,
             num_train_views=config.num_train_views,
             max_test_views=config.max_test_views,
+            max_val_views=config.max_val_views,
             downscale=config.image_downscale,
             bounds=bounds,
         )

@@ -1,4 +1,4 @@
-"""Choosing views: evenly spaced subsets and every-n-th holdout splits."""
+"""Choosing views: evenly spaced subsets, every-n-th holdout splits and validation views."""
 
 from pathlib import Path
 
@@ -47,3 +47,13 @@ def subsample_test_ids(ids: list[int], max_views: int) -> list[int]:
     if max_views <= 0 or max_views >= len(ids):
         return list(ids)
     return [ids[i] for i in evenly_spaced(len(ids), max_views)]
+
+
+def validation_ids(candidates: list[int], excluded: list[int], max_views: int) -> list[int]:
+    """The validation views: those of `candidates` not in `excluded` (the protocol's training
+    and test views), at most `max_views` of them evenly spaced (0: all). Empty when nothing is left.
+
+    Settings are chosen on these views, so that the test views are scored once, for the record.
+    """
+    used = set(excluded)
+    return subsample_test_ids([i for i in candidates if i not in used], max_views)

@@ -25,6 +25,10 @@ Two protocols choose the views:
   `n` of them) and every 8th test frame (25 views).
 
 Numbers from the two protocols are not comparable.
+
+Validation views come from `transforms_val.json` when its images are there, otherwise from
+the frames of `transforms_train.json` that the protocol does not train on; evenly spaced
+either way. Neither set meets the test views.
 """
 
 import math
@@ -45,7 +49,7 @@ from ._files import (
     to_float,
 )
 from ._poses import parse_transform_matrix
-from ._splits import subsample_test_ids
+from ._splits import subsample_test_ids, validation_ids
 
 __all__ = ["SCENES", "load_blender", "split_ids"]
 
@@ -178,12 +182,32 @@ def _load_views(scene_dir: Path, ids: list[int], meta: Any, path: Path, downscal
     )
 
 
+def _validation(
+    scene_dir: Path, train_meta: Any, train_path: Path, train_ids: list[int], max_views: int, downscale: int
+) -> tuple[Views | None, str]:
+    """The validation views and where they come from (see the module docstring)."""
+    val_path = scene_dir / "transforms_val.json"
+    if val_path.is_file():
+        val_meta = read_json(val_path, "Blender camera file", _ADVICE)
+        frames = _frames(val_meta, val_path)
+        ids = subsample_test_ids(list(range(len(frames))), max_views)
+        paths = [_image_path(scene_dir, frames[i]["file_path"]) for i in ids]
+        if all(p.is_file() or _downsampled_path(p).is_file() for p in paths):
+            return _load_views(scene_dir, ids, val_meta, val_path, downscale), "transforms_val.json"
+    ids = validation_ids(list(range(len(_frames(train_meta, train_path)))), train_ids, max_views)
+    if not ids:
+        return None, "no val images and no unused training frame"
+    views = _load_views(scene_dir, ids, train_meta, train_path, downscale)
+    return views, "training frames not trained on (transforms_val.json's images are missing)"
+
+
 def load_blender(
     scene_dir: Path,
     *,
     num_train_views: int,
     protocol: Literal["mixnerf", "dietnerf"] = "mixnerf",
     max_test_views: int = 0,
+    max_val_views: int = 0,
     downscale: int = 1,
 ) -> Dataset:
     """Loads one NeRF synthetic scene under the chosen protocol.
@@ -195,6 +219,8 @@ def load_blender(
     - `protocol`: `"mixnerf"` or `"dietnerf"` (see the module docstring).
     - `max_test_views`: keep only this many of the protocol's test views, evenly spaced
       (0 keeps them all).
+    - `max_val_views`: the number of validation views, evenly spaced (0: every one there is;
+      the val split has 100).
     - `downscale`: area-average `downscale x downscale` blocks of the composited 400x400
       images and divide the focal length by it (see the module docstring); 1 keeps 400x400.
 
@@ -214,12 +240,17 @@ def load_blender(
         train_path,
     )
     test_ids = subsample_test_ids(test_ids, max_test_views)
+    train = _load_views(scene_dir, train_ids, train_meta, train_path, downscale)
+    test = _load_views(scene_dir, test_ids, test_meta, test_path, downscale)
+    val, val_source = _validation(scene_dir, train_meta, train_path, train_ids, max_val_views, downscale)
     return Dataset(
         name=scene_dir.name,
-        train=_load_views(scene_dir, train_ids, train_meta, train_path, downscale),
-        test=_load_views(scene_dir, test_ids, test_meta, test_path, downscale),
+        train=train,
+        test=test,
         near=NEAR,
         far=FAR,
         white_background=True,
         frustum="cone",
+        val=val,
+        val_source=val_source,
     )

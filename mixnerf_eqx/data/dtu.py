@@ -43,7 +43,7 @@ from ._downscale import check_factor, downscale_image, downscale_intrinsics, dow
 from ._errors import DatasetError
 from ._files import area_downsample, check_same_size, list_images, read_image, read_images, require_file
 from ._poses import decompose_projection, recenter_poses
-from ._splits import subsample_test_ids
+from ._splits import subsample_test_ids, validation_ids
 
 __all__ = ["SCANS", "dtu_cameras", "load_dtu", "protocol_ids"]
 
@@ -248,6 +248,7 @@ def load_dtu(
     mask_roots: Sequence[Path] = (),
     masks_required: bool = False,
     max_test_views: int = 0,
+    max_val_views: int = 0,
     full_size: tuple[int, int] = FULL_SIZE,
     factor: int = FACTOR,
     downscale: int = 1,
@@ -264,6 +265,8 @@ def load_dtu(
     - `masks_required`: a missing mask folder is an error instead of a warning.
     - `max_test_views`: keep only this many of the protocol's test views, evenly spaced
       (0 keeps them all).
+    - `max_val_views`: keep only this many validation views (the scan's views that are
+      neither the protocol's training nor its test views), evenly spaced (0 keeps them all).
     - `full_size`: the `(width, height)` of full-size images, which are downsampled.
     - `factor`: the downsampling factor of full-size images.
     - `downscale`: area-average `downscale x downscale` blocks of the 400x300 images (and
@@ -279,6 +282,7 @@ def load_dtu(
     camera_path = scan_dir / "cameras.npz"
     intrinsics, camtoworlds = dtu_cameras(_read_cameras(camera_path, len(files)), camera_path)
     train_ids, test_ids = protocol_ids(num_train_views)
+    val_ids = validation_ids(list(range(len(files))), train_ids + test_ids, max_val_views)
     test_ids = subsample_test_ids(test_ids, max_test_views)
 
     def views(ids: list[int], masks: list[Path] | None) -> Views:
@@ -304,4 +308,6 @@ def load_dtu(
         far=FAR,
         white_background=False,
         frustum="cone",
+        val=views(val_ids, None) if val_ids else None,
+        val_source="views outside the protocol's training and test ids" if val_ids else "no view left over",
     )

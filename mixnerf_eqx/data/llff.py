@@ -27,7 +27,7 @@ from ._downscale import check_factor, downscale_centred_camera, downscale_image
 from ._errors import DatasetError
 from ._files import check_same_size, list_images, read_images, read_npy, require_dir
 from ._poses import recenter_poses
-from ._splits import holdout_split, subsample_test_ids
+from ._splits import holdout_split, subsample_test_ids, validation_ids
 
 __all__ = ["SCENES", "llff_poses", "load_llff"]
 
@@ -79,7 +79,12 @@ def llff_poses(
 
 
 def load_llff(
-    scene_dir: Path, *, num_train_views: int, max_test_views: int = 0, downscale: int = 1
+    scene_dir: Path,
+    *,
+    num_train_views: int,
+    max_test_views: int = 0,
+    max_val_views: int = 0,
+    downscale: int = 1,
 ) -> Dataset:
     """Loads one LLFF scene with the few-shot protocol's split.
 
@@ -89,6 +94,8 @@ def load_llff(
     - `num_train_views`: the number of training views.
     - `max_test_views`: keep only this many of the protocol's test views, evenly spaced
       (0 keeps them all).
+    - `max_val_views`: keep only this many validation views (the images that are neither
+      training nor test views), evenly spaced (0 keeps them all).
     - `downscale`: area-average `downscale x downscale` blocks of the 504x378 images and
       divide the focal length by it (see the module docstring); 1 keeps the protocol's images.
 
@@ -115,6 +122,7 @@ def load_llff(
             "each image needs exactly one row. Restore the missing images (or poses) so the counts match."
         )
     train_ids, test_ids = holdout_split(len(files), HOLDOUT_EVERY, num_train_views, image_dir)
+    val_ids = validation_ids(list(range(len(files))), train_ids + test_ids, max_val_views)
     test_ids = subsample_test_ids(test_ids, max_test_views)
 
     def views(ids: list[int]) -> Views:
@@ -150,4 +158,8 @@ def load_llff(
         far=FAR,
         white_background=False,
         frustum="cylinder",
+        val=views(val_ids) if val_ids else None,
+        val_source="images neither trained on nor held out for testing"
+        if val_ids
+        else "every image is a training or test view",
     )

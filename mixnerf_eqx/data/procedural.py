@@ -45,10 +45,11 @@ DIFFUSE = 0.7
 SPECULAR = 0.35
 SHININESS = 40.0
 
-# Elevations (degrees) cycled through by the two splits. The two sets are disjoint, so no
-# test pose can coincide with a training pose whatever the numbers of views.
+# Elevations (degrees) cycled through by the three splits. The sets are disjoint, so no
+# two splits can share a pose whatever the numbers of views.
 _TRAIN_ELEVATIONS = (28.0, 40.0)
 _TEST_ELEVATIONS = (20.0, 34.0, 46.0)
+_VAL_ELEVATIONS = (24.0, 37.0, 43.0)
 # An azimuth offset that keeps the cameras off the scene's axes, where the box faces would
 # be seen exactly edge-on.
 _AZIMUTH_OFFSET = np.deg2rad(17.0)
@@ -375,6 +376,13 @@ def _test_poses(num_views: int) -> np.ndarray:
     return _orbit_poses(azimuths, elevations)
 
 
+def _val_poses(num_views: int) -> np.ndarray:
+    # A quarter step off the training azimuths: between training and test cameras.
+    azimuths = _AZIMUTH_OFFSET + 2 * np.pi * (np.arange(num_views) + 0.25) / num_views
+    elevations = np.deg2rad([_VAL_ELEVATIONS[i % 3] for i in range(num_views)])
+    return _orbit_poses(azimuths, elevations)
+
+
 def _focal(resolution: int) -> float:
     return float(0.5 * resolution / np.tan(0.5 * np.deg2rad(FOV_DEGREES)))
 
@@ -413,13 +421,16 @@ def _check_count(value: int, name: str, minimum: int, maximum: int) -> None:
         raise ValueError(f"{name} must lie in [{minimum}, {maximum}], got {value}")
 
 
-def make_builtin_scene(*, resolution: int = 64, num_train_views: int = 4, num_test_views: int = 8) -> Dataset:
+def make_builtin_scene(
+    *, resolution: int = 64, num_train_views: int = 4, num_test_views: int = 8, num_val_views: int = 4
+) -> Dataset:
     """Generates the built-in procedural scene.
 
     The scene is deterministic: every call with the same arguments returns bit-identical
     arrays. Training cameras are spread evenly in azimuth at elevations of 28 and 40
     degrees; test cameras lie halfway between, at elevations of 20, 34 and 46 degrees, so no
-    test pose equals a training pose. All cameras are 4 units from the origin, look at a
+    test pose equals a training pose; validation cameras lie a quarter step after the training
+    cameras, at elevations of 24, 37 and 43 degrees. All cameras are 4 units from the origin, look at a
     point slightly above the ground and have a 40 degree field of view.
 
     **Arguments:**
@@ -427,15 +438,18 @@ def make_builtin_scene(*, resolution: int = 64, num_train_views: int = 4, num_te
     - `resolution`: the width and height of the square images, in pixels.
     - `num_train_views`: the number of training views (few-shot: 3 to 9 is typical).
     - `num_test_views`: the number of held-out test views.
+    - `num_val_views`: the number of validation views (0: none).
 
     **Returns:**
 
     A `Dataset` named `"builtin"` on a white background, with `near = 2` and `far = 6`,
-    and true depths (`inf` on the background) in both splits.
+    and true depths (`inf` on the background) in every split. Ids number the training, test
+    and validation views in that order.
     """
     _check_count(resolution, "resolution", 8, 4096)
     _check_count(num_train_views, "num_train_views", 1, MAX_VIEWS)
     _check_count(num_test_views, "num_test_views", 1, MAX_VIEWS)
+    _check_count(num_val_views, "num_val_views", 0, MAX_VIEWS)
     focal = _focal(resolution)
 
     def views(poses: np.ndarray, first_id: int) -> Views:
@@ -456,4 +470,6 @@ def make_builtin_scene(*, resolution: int = 64, num_train_views: int = 4, num_te
         far=FAR,
         white_background=True,
         frustum="cone",
+        val=views(_val_poses(num_val_views), num_train_views + num_test_views) if num_val_views else None,
+        val_source="extra cameras" if num_val_views else "none asked for (data.num_val_views = 0)",
     )

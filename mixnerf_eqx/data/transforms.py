@@ -42,7 +42,7 @@ from ._files import (
     read_json,
 )
 from ._poses import parse_transform_matrix
-from ._splits import holdout_split, subsample_test_ids
+from ._splits import holdout_split, subsample_test_ids, validation_ids
 
 __all__ = ["default_bounds", "load_transforms"]
 
@@ -190,6 +190,7 @@ def load_transforms(
     *,
     num_train_views: int,
     max_test_views: int = 0,
+    max_val_views: int = 0,
     downscale: int = 1,
     bounds: tuple[float, float] | None = None,
 ) -> Dataset:
@@ -201,6 +202,8 @@ def load_transforms(
     - `num_train_views`: the number of training views, picked evenly from the frames that
       are not held out.
     - `max_test_views`: keep only this many of the held-out views, evenly spaced (0: all).
+    - `max_val_views`: keep only this many validation views (the frames that are neither
+      training nor test views), evenly spaced (0: all).
     - `downscale`: area-average `downscale x downscale` blocks of the images and scale the
       intrinsics to match (see the module docstring); 1 keeps the stored images.
     - `bounds`: `(near, far)`; `None` derives them from the cameras (`default_bounds`).
@@ -214,6 +217,7 @@ def load_transforms(
     frames = _frames(meta, path)
     poses = _poses(frames, path)
     train_ids, test_ids = holdout_split(len(frames), HOLDOUT_EVERY, num_train_views, path)
+    val_ids = validation_ids(list(range(len(frames))), train_ids + test_ids, max_val_views)
     test_ids = subsample_test_ids(test_ids, max_test_views)
     near, far = default_bounds(poses) if bounds is None else bounds
     if not 0 <= near < far:
@@ -221,7 +225,7 @@ def load_transforms(
             f"{path}: sampling bounds near={near:g}, far={far:g} are unusable (cameras at the origin?); "
             "set data.near and data.far."
         )
-    raw_images = _read_frame_images(scene_dir, frames, train_ids + test_ids)
+    raw_images = _read_frame_images(scene_dir, frames, train_ids + test_ids + val_ids)
     has_alpha = any(image.shape[-1] == 4 for _, image in raw_images.values())
 
     def views(ids: list[int]) -> Views:
@@ -237,4 +241,8 @@ def load_transforms(
         far=float(far),
         white_background=has_alpha,
         frustum="cone",
+        val=views(val_ids) if val_ids else None,
+        val_source="frames neither trained on nor held out for testing"
+        if val_ids
+        else "every frame is a training or test view",
     )
