@@ -96,6 +96,17 @@ def finished_metrics(run: SweepRun) -> dict[str, Any] | None:
     return metrics
 
 
+def _kept(metrics: dict[str, Any]) -> dict[str, Any]:
+    """What the table keeps of a run's `metrics.json`: its step, scene, test scores and
+    validation scores (`None` for a scene without validation views or an older run)."""
+    return {
+        "step": metrics["step"],
+        "scene": metrics["scene"],
+        "test": metrics["test"],
+        "val": metrics.get("val"),
+    }
+
+
 def run_one(config: Config, progress: bool = False) -> dict[str, Any]:
     """Trains (or resumes) and evaluates one run; returns its final metrics. What a job runs."""
     from ._train import fit
@@ -103,7 +114,7 @@ def run_one(config: Config, progress: bool = False) -> dict[str, Any]:
     metrics = finished_metrics(SweepRun(config.data.scene, config.train.seed, config))
     if metrics is None:
         metrics = fit(config, progress=progress).metrics
-    return {"step": metrics["step"], "scene": metrics["scene"], "test": metrics["test"]}
+    return _kept(metrics)
 
 
 def published_numbers(reproduces: str) -> dict[str, float]:
@@ -143,6 +154,12 @@ def aggregate(
         for metric in METRICS:
             values = [v for seed in seeds if (v := value(scene, seed, metric)) is not None]
             per_scene[scene][metric] = _mean_and_spread(values) if values else None
+        val = [
+            found["val"]["psnr"]
+            for seed in seeds
+            if (found := results.get((scene, seed))) is not None and found.get("val")
+        ]
+        per_scene[scene]["val_psnr"] = _mean_and_spread(val) if val else None
     complete_seeds = [seed for seed in seeds if all((scene, seed) in results for scene in scenes)]
     mean = {}
     for metric in METRICS:
@@ -154,6 +171,7 @@ def aggregate(
     return {
         "config": config.name,
         "reproduces": config.reproduces,
+        "chosen_on": config.chosen_on,
         "scenes": scenes,
         "seeds": seeds,
         "benchmark_scenes": list(BENCHMARK_SCENES.get(config.data.dataset, ())),
@@ -189,31 +207,35 @@ def format_markdown(table: dict[str, Any]) -> str:
     (± std over seeds) and the published numbers."""
     digits = {"psnr": 2, "ssim": 3, "lpips": 3, "depth_mae": 3}
     names = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "depth_mae": "depth MAE"}
-    header = "| scene | " + " | ".join(names[m] for m in METRICS) + " |"
+    header = "| scene | " + " | ".join(f"test {names[m]}" for m in METRICS) + " | validation PSNR |"
     lines = [
         f"# {table['config']}",
         "",
         f"Reproduces: {table['reproduces'] or 'none'}",
         "",
+        f"Settings chosen on: {table.get('chosen_on') or 'not stated in the config'}",
+        "",
         f"Seeds {', '.join(map(str, table['seeds']))}; each cell is the mean ± the standard deviation over "
-        "seeds (the mean over scenes: of the per-seed means).",
+        "seeds (the mean over scenes: of the per-seed means). Compare settings on the validation "
+        "column; the test columns are the record.",
         "",
         header,
-        "|" + "---|" * (len(METRICS) + 1),
+        "|" + "---|" * (len(METRICS) + 2),
     ]
     for scene, row in table["per_scene"].items():
-        lines.append(f"| {scene} | " + " | ".join(_cell(row[m], digits[m]) for m in METRICS) + " |")
+        cells = [_cell(row[m], digits[m]) for m in METRICS] + [_cell(row.get("val_psnr"), 2)]
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
     lines.append(
         f"| **mean of {len(table['scenes'])} scene{'s' if len(table['scenes']) > 1 else ''}** | "
         + " | ".join(_cell(table["mean"][m], digits[m]) for m in METRICS)
-        + " |"
+        + " | |"
     )
     published = table["published"]
     if published:
         lines.append(
             "| published | "
             + " | ".join(f"{published[m]:g}" if m in published else "" for m in METRICS)
-            + " |"
+            + " | |"
         )
     notes = []
     benchmark = table["benchmark_scenes"]
@@ -249,9 +271,7 @@ def run_local(
         on_run(index, run, "finished" if done is not None else "running")
         try:
             results[(run.scene, run.seed)] = (
-                run_one(run.config, progress)
-                if done is None
-                else {"step": done["step"], "scene": done["scene"], "test": done["test"]}
+                run_one(run.config, progress) if done is None else _kept(done)
             )
         except (ConfigError, DatasetError, FileNotFoundError) as error:
             failures[(run.scene, run.seed)] = str(error)
@@ -278,11 +298,7 @@ def run_submitit(
         done = finished_metrics(run)
         if done is not None:
             on_run(index, run, "finished")
-            results[(run.scene, run.seed)] = {
-                "step": done["step"],
-                "scene": done["scene"],
-                "test": done["test"],
-            }
+            results[(run.scene, run.seed)] = _kept(done)
             continue
         executor.update_parameters(name=f"{run.config.name}-{run.scene}-{run.seed}")
         job = executor.submit(run_one, run.config)

@@ -76,6 +76,19 @@ def test_eval_command_reproduces_the_training_metrics(trained, tiny_scene, capsy
     assert any(name.endswith("_depth.png") for name in pngs)
 
 
+def test_eval_of_the_validation_views(trained, tiny_scene, capsys):
+    code = eval_main(
+        [str(trained.run_dir), "--split", "val", "--no-progress", "--no-typecheck", "--no-lpips"]
+    )
+    assert code == 0
+    written = json.loads((trained.run_dir / "eval_val" / "metrics.json").read_text())
+    assert written["split"] == "val" and written["num_views"] == tiny_scene.val.num_views
+    assert [v["view"] for v in written["per_view"]] == list(tiny_scene.val.ids)
+    # The scores that training wrote for its validation views at the end.
+    assert written["mean"]["psnr"] == pytest.approx(trained.metrics["val"]["psnr"], abs=1e-6)
+    assert not set(tiny_scene.val.ids) & set(tiny_scene.test.ids)
+
+
 def test_eval_of_a_subset_and_without_lpips(trained, tiny_scene, tmp_path):
     out = tmp_path / "subset"
     code = eval_main(

@@ -42,8 +42,10 @@ def test_the_table_is_the_mean_over_scenes_and_its_spread_over_seeds(tmp_path):
     runs = plan_sweep(config, tmp_path, scenes=["fern", "horns"], seeds=[0, 1, 2])
     psnr = {("fern", 0): 20.0, ("fern", 1): 21.0, ("fern", 2): 22.5, ("horns", 0): 18.0, ("horns", 1): 17.0}
     results = {
-        key: {"step": 1, "scene": key[0], "test": {"psnr": value, "ssim": 0.5}} for key, value in psnr.items()
+        key: {"step": 1, "scene": key[0], "test": {"psnr": value, "ssim": 0.5}, "val": {"psnr": value - 1}}
+        for key, value in psnr.items()
     }
+    results[("horns", 1)]["val"] = None  # a run without validation views
     table = aggregate(config, runs, results)
     # Per scene: mean and sample standard deviation over the seeds that finished it.
     assert table["per_scene"]["fern"]["psnr"]["mean"] == pytest.approx(21.166666666)
@@ -55,10 +57,14 @@ def test_the_table_is_the_mean_over_scenes_and_its_spread_over_seeds(tmp_path):
     assert table["mean"]["psnr"]["std"] == 0.0
     assert table["mean"]["lpips"] is None
     assert table["missing"] == ["horns seed 2"]
+    # The validation column: the seeds that have validation scores.
+    assert table["per_scene"]["fern"]["val_psnr"]["mean"] == pytest.approx(20.166666666)
+    assert table["per_scene"]["horns"]["val_psnr"]["n"] == 1
     markdown = format_markdown(table)
-    assert "| fern | 21.17 ± 1.26 | 0.500 ± 0.000 | n/a | n/a |" in markdown
+    assert "| fern | 21.17 ± 1.26 | 0.500 ± 0.000 | n/a | n/a | 20.17 ± 1.26 |" in markdown
     assert "| **mean of 2 scenes** | 19.00 ± 0.00 |" in markdown
-    assert "| published | 19.27 | 0.629 | 0.236 |  |" in markdown
+    assert "| published | 19.27 | 0.629 | 0.236 |  | |" in markdown
+    assert "Settings chosen on: the paper's published settings" in markdown
     assert "Only 2 of the benchmark's 8 scenes" in markdown and "Not finished: horns seed 2." in markdown
 
 
