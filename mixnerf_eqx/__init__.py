@@ -50,6 +50,8 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._field import TriPlaneEncoding as TriPlaneEncoding
     from ._field import level_resolutions as level_resolutions
     from ._field import level_scale_weights as level_scale_weights
+    from ._lock import FolderBusyError as FolderBusyError
+    from ._lock import hold_folder as hold_folder
     from ._loss import LossTerms as LossTerms
     from ._loss import LossWeights as LossWeights
     from ._loss import loss_fn as loss_fn

@@ -10,6 +10,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,6 +29,7 @@ from ._checkpoint import (
 from ._config import Config, ConfigError, config_to_dict
 from ._evaluate import Evaluation, Rendered, evaluate
 from ._interrupt import deferred_interrupts, raise_if_interrupted
+from ._lock import LOCK_NAME, hold_folder
 from ._model import MixNeRF
 from ._progress import Progress
 from ._run import (
@@ -189,16 +191,25 @@ class _Guard:
             )
 
 
-def _prepare_run_dir(run_dir: Path) -> None:
-    """Creates the run folder, or says in one line why it cannot be used (before any loading)."""
+def _prepare_run_dir(run_dir: Path) -> bool:
+    """Creates the run folder, or says in one line why it cannot be used (before any loading).
+    Returns whether the folder was created here."""
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"train.run_dir {run_dir} is a file, not a folder; choose another train.run_dir")
+    existed = run_dir.is_dir()
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise ConfigError(f"cannot create train.run_dir {run_dir}: {error.strerror or error}") from None
     if not os.access(run_dir, os.W_OK | os.X_OK):
         raise ConfigError(f"train.run_dir {run_dir} is not writable; choose another train.run_dir")
+    return not existed
+
+
+def _remove_if_unused(run_dir: Path) -> None:
+    """Removes a run folder that this process created and wrote nothing into but its lock."""
+    if run_dir.is_dir() and {p.name for p in run_dir.iterdir()} <= {LOCK_NAME}:
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) -> tuple[Config, TrainState]:
@@ -276,9 +287,32 @@ def fit(
 
     A `TrainResult` with the final test metrics (also written to `metrics.json`).
     """
-    run_dir, train = Path(config.train.run_dir), config.train
-    config_dict = config_to_dict(config)
-    _prepare_run_dir(run_dir)
+    run_dir = Path(config.train.run_dir)
+    created = _prepare_run_dir(run_dir)
+    try:
+        # One writer per run folder: a second `fit` on it fails here, before touching it.
+        with hold_folder(run_dir):
+            return _fit_holding(
+                config, run_dir, dataset, resume, progress, write_renders, log_every, stop_after
+            )
+    except BaseException:
+        if created:
+            _remove_if_unused(run_dir)
+        raise
+
+
+def _fit_holding(
+    config: Config,
+    run_dir: Path,
+    dataset: Dataset | None,
+    resume: bool,
+    progress: bool,
+    write_renders: bool,
+    log_every: int,
+    stop_after: int | None,
+) -> TrainResult:
+    """`fit`, once the run folder is this process's."""
+    train = config.train
     dataset = load_dataset(config.data) if dataset is None else dataset
     config, state = _start_state(config, dataset, run_dir, resume)
     config_dict = config_to_dict(config)

@@ -15,6 +15,7 @@ from pathlib import Path
 from ._cli import report_error
 from ._config import ConfigError, load_config, replace_setting
 from ._interrupt import deferred_interrupts
+from ._lock import hold_folder
 from ._sweep import SweepRun, aggregate, format_markdown, plan_sweep, run_local, run_submitit, write_table
 from ._train import TrainingDiverged
 from ._typecheck import add_typecheck_argument, typecheck_argument
@@ -91,6 +92,14 @@ def run(args: argparse.Namespace) -> int:
     scenes = [scene.strip() for scene in args.scenes.split(",") if scene.strip()]
     runs = plan_sweep(config, out, scenes=scenes, seeds=_seeds(args.seeds))
     print(f"sweep of {config.name}: {len(runs)} runs in {out}")
+    out.mkdir(parents=True, exist_ok=True)
+    # One sweep per folder: a second sweep on the same `--out` fails here, before any run.
+    with hold_folder(out, "sweep", "--out"):
+        return _run_holding(args, config, out, runs)
+
+
+def _run_holding(args: argparse.Namespace, config, out: Path, runs: list[SweepRun]) -> int:
+    """`run`, once the sweep folder is this process's."""
 
     def on_run(index: int, sweep_run: SweepRun, status: str) -> None:
         print(f"[{index + 1}/{len(runs)}] {sweep_run.scene}, seed {sweep_run.seed}: {status}", flush=True)
