@@ -30,7 +30,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, Key, PRNGKeyArray, Shaped, UInt32
 
 Scalar: TypeAlias = Float[Array, ""]
-ScalarLike: TypeAlias = float | Float[Array, ""]
+ScalarLike: TypeAlias = float | int | np.floating | np.integer | Float[Array, ""] | Float[np.ndarray, ""]
 PRNGKey: TypeAlias = PRNGKeyArray
 # One key per ray or point (typed keys, or raw uint32 pairs), and four per ray (see `MixNeRF`).
 RayKeys: TypeAlias = Key[Array, " batch"] | UInt32[Array, "batch 2"]

@@ -22,6 +22,7 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
@@ -56,6 +57,9 @@ def mixing_coefficients(weights: PerSample) -> PerSample:
     """`pi_j = w_j / sum_m w_m` (eq. 6), summing to one; uniform for a ray without weight."""
     return jnp.exp(_COEFFICIENTS.log_mixing_coefficients(weights))
 
+
+# Quantile levels: a sequence of numbers, or a 1-d array of them.
+Levels = Sequence[ScalarLike] | Float[Array, " _"] | Float[np.ndarray, " _"]
 
 def _inverse_scale(scale: Float[Array, "*#batch"]) -> Float[Array, "*#batch"]:
     # exp(-log b) rather than 1 / b, so that a scale that underflowed to 0 gives the largest
@@ -304,12 +308,10 @@ class ColourMixture(eqx.Module):
 
         return self._per_ray(one_ray, rgb)
 
-    def quantiles(self, levels: Sequence[float]) -> Float[Array, "_ *batch channels"]:
+    def quantiles(self, levels: Levels) -> Float[Array, "_ *batch channels"]:
         """Per-channel quantiles at each of `levels` in (0, 1), stacked in front: one batched
         bisection for every level, channel and ray."""
-        for level in levels:
-            _check_level(level)
-        levels_array = jnp.asarray(levels, self.location.dtype)
+        levels_array = _check_levels(levels, self.location.dtype)
 
         def one_ray(coefficients, location, scale):
             per_channel = jax.vmap(channel_quantile, in_axes=(None, None, 1, 1))
@@ -321,7 +323,7 @@ class ColourMixture(eqx.Module):
 
     def quantile(self, level: ScalarLike) -> Float[Array, "*batch channels"]:
         """Per-channel quantile at `level` in (0, 1) (`0.5`: the median)."""
-        _check_level(level)
+        level = _check_level(level)
 
         def one_ray(coefficients, location, scale):
             return jax.vmap(channel_quantile, in_axes=(None, None, 1, 1))(
@@ -334,11 +336,11 @@ class ColourMixture(eqx.Module):
         return self.quantile(0.5)
 
     def interval(
-        self, mass: float
+        self, mass: ScalarLike
     ) -> tuple[Float[Array, "*batch channels"], Float[Array, "*batch channels"]]:
         """The central interval of each channel that holds `mass` in (0, 1): from the
         `(1 - mass) / 2` quantile to the `(1 + mass) / 2` quantile."""
-        _check_level(mass)
+        mass = _check_level(mass)
         lower, upper = self.quantiles((0.5 * (1.0 - mass), 0.5 * (1.0 + mass)))
         return lower, upper
 
@@ -363,7 +365,7 @@ class ColourMixture(eqx.Module):
 
     def with_temperature(self, temperature: ScalarLike) -> "ColourMixture":
         """The same mixture with every scale multiplied by `temperature` (> 0)."""
-        return ColourMixture(self.coefficients, self.location, self.scale * temperature)
+        return ColourMixture(self.coefficients, self.location, self.scale * _check_temperature(temperature))
 
 
 class TerminationDistribution(eqx.Module):
@@ -404,12 +406,10 @@ class TerminationDistribution(eqx.Module):
 
         return self._per_ray(one_ray)
 
-    def quantiles(self, levels: Sequence[float]) -> Float[Array, "_ *batch"]:
+    def quantiles(self, levels: Levels) -> Float[Array, "_ *batch"]:
         """The termination distance's quantiles at each of `levels` in (0, 1), stacked in
         front: one batched bisection for every level and ray (`termination_quantile`)."""
-        for level in levels:
-            _check_level(level)
-        levels_array = jnp.asarray(levels, self.weights.dtype)
+        levels_array = _check_levels(levels, self.weights.dtype)
 
         def one_ray(weights: PerSample, t_edges: Edges) -> Float[Array, " _"]:
             return jax.vmap(termination_quantile, in_axes=(0, None, None))(levels_array, weights, t_edges)
@@ -418,27 +418,77 @@ class TerminationDistribution(eqx.Module):
         weights = self.weights.reshape(count, self.weights.shape[-1])
         edges = self.t_edges.reshape(count, self.t_edges.shape[-1])
         out = jax.vmap(one_ray)(weights, edges)
-        return out.T.reshape(len(levels), *self.batch_shape)
+        return out.T.reshape(levels_array.shape[0], *self.batch_shape)
 
-    def quantile(self, level: float) -> Float[Array, "*batch"]:
+    def quantile(self, level: ScalarLike) -> Float[Array, "*batch"]:
         """The `level` quantile of the termination distance (`depth_quantile`, by bisection
         bracketed by the ray's first and last edge)."""
-        _check_level(level)
+        level = _check_level(level)
         return self._per_ray(lambda weights, t_edges: depth_quantile(weights, t_edges, level))
 
     def median(self) -> Float[Array, "*batch"]:
         return self.quantile(0.5)
 
-    def interval(self, mass: float) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
+    def interval(self, mass: ScalarLike) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
         """The central interval that holds `mass` of the termination distance."""
-        _check_level(mass)
+        mass = _check_level(mass)
         lower, upper = self.quantiles((0.5 * (1.0 - mass), 0.5 * (1.0 + mass)))
         return lower, upper
 
 
-def _check_level(level: ScalarLike) -> None:
-    if isinstance(level, float | int) and not 0.0 < level < 1.0:
-        raise ValueError(f"a quantile level or interval mass must lie in (0, 1), got {level}")
+def _is_traced(value) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(value))
+
+
+def _scalar(value, name: str):
+    """`value` as given if it is one real number of any accepted type, else a ValueError."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.number | np.ndarray | jax.Array):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
+    if np.ndim(value) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
+    return value
+
+
+def _check_level(level: ScalarLike, name: str = "a quantile level or interval mass"):
+    """`level`, checked to lie in (0, 1): at once where it is concrete, when it is computed
+    (`eqx.error_if`) where it is traced."""
+    level = _scalar(level, name)
+    message = f"{name} must lie in (0, 1)"
+    if _is_traced(level):
+        return eqx.error_if(level, ~((level > 0) & (level < 1)), message)
+    if not 0.0 < float(level) < 1.0:  # NaN fails too
+        raise ValueError(f"{message}, got {level}")
+    return level
+
+
+def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
+    """`levels` (a sequence or a 1-d array) as an array, each checked as `_check_level` does."""
+    if isinstance(levels, Sequence) and not isinstance(levels, str):
+        if not levels:
+            raise ValueError("quantile levels must not be empty")
+        return jnp.stack([jnp.asarray(_check_level(level), dtype) for level in levels])
+    if not isinstance(levels, np.ndarray | jax.Array) or np.ndim(levels) != 1 or np.shape(levels)[0] == 0:
+        raise ValueError(f"quantile levels must be a non-empty sequence or 1-d array, got {levels!r}")
+    message = "a quantile level or interval mass must lie in (0, 1)"
+    if _is_traced(levels):
+        levels = jnp.asarray(levels, dtype)
+        return eqx.error_if(levels, ~jnp.all((levels > 0) & (levels < 1)), message)
+    values = np.asarray(levels, np.float64)
+    bad = values[~((values > 0) & (values < 1))]
+    if bad.size:
+        raise ValueError(f"{message}, got {bad.tolist()}")
+    return jnp.asarray(levels, dtype)
+
+
+def _check_temperature(temperature: ScalarLike):
+    """`temperature`, checked to be finite and positive (where traced, when computed)."""
+    temperature = _scalar(temperature, "temperature")
+    message = "temperature must be a finite positive number"
+    if _is_traced(temperature):
+        return eqx.error_if(temperature, ~(jnp.isfinite(temperature) & (temperature > 0)), message)
+    if not (math.isfinite(float(temperature)) and float(temperature) > 0):
+        raise ValueError(f"{message}, got {temperature}")
+    return temperature
 
 
 class Predictive(eqx.Module):
@@ -459,6 +509,16 @@ class Predictive(eqx.Module):
     acc: Float[Array, "*batch"]
 
 
+def _check_bounds(rays: RayBundle) -> RayBundle:
+    """`rays`, checked to have `near <= far` (the sampling interval would be reversed)."""
+    message = "rays must have near <= far"
+    if _is_traced((rays.near, rays.far)):
+        return eqx.tree_at(lambda r: r.near, rays, eqx.error_if(rays.near, jnp.any(rays.near > rays.far), message))
+    reversed_rays = int(np.sum(np.asarray(rays.near) > np.asarray(rays.far)))
+    if reversed_rays:
+        raise ValueError(f"{message}: {reversed_rays} of {math.prod(rays.batch_shape)} rays have near > far")
+    return rays
+
 def colour_mixture(level: LevelOutputs, temperature: ScalarLike = 1.0) -> ColourMixture:
     """The colour mixture of one level's render (a model with mixture heads), its scales
     multiplied by `temperature`."""
@@ -470,7 +530,7 @@ def colour_mixture(level: LevelOutputs, temperature: ScalarLike = 1.0) -> Colour
     count = level.weights.shape[-1]
     flat = level.weights.reshape(-1, count)
     coefficients = jax.vmap(mixing_coefficients)(flat).reshape(level.weights.shape)
-    return ColourMixture(coefficients, level.field.rgb, beta * temperature)
+    return ColourMixture(coefficients, level.field.rgb, beta * _check_temperature(temperature))
 
 
 def predictive(
@@ -507,7 +567,7 @@ def predictive(
         raise ValueError(
             "this model has no mixture heads (the mip-NeRF baseline): it predicts no distribution"
         )
-    outputs = model(rays)
+    outputs = model(_check_bounds(rays))
     colour_from = outputs.coarse if colour_level == "coarse" else outputs.fine
     depth_from = outputs.coarse if depth_level == "coarse" else outputs.fine
     return Predictive(

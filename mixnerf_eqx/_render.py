@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from ._custom_types import RGB, Edges, PerSample, PerSampleRGB
+from ._custom_types import RGB, Edges, PerSample, PerSampleRGB, ScalarLike
 
 
 def blend_weights(density: PerSample, t_edges: Edges, step_scale: Float[Array, ""] | PerSample) -> PerSample:
@@ -89,7 +89,7 @@ def distortion(
 
 
 def depth_quantile(
-    weights: PerSample, t_edges: Edges, quantile: float = 0.5, *, tolerance: float = 1e-6
+    weights: PerSample, t_edges: Edges, quantile: ScalarLike = 0.5, *, tolerance: float = 1e-6
 ) -> Float[Array, ""]:
     """The `quantile` of where the ray terminates (0.5: the median depth).
 

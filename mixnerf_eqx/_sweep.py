@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from . import _json as strict_json
 from ._config import Config, ConfigError, config_from_dict
 from ._run import check_resumable
 from .data import blender, dtu, llff
@@ -254,7 +255,7 @@ def write_table(table: dict[str, Any], out: Path) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
     markdown, data = out / "table.md", out / "table.json"
     markdown.write_text(format_markdown(table))
-    data.write_text(json.dumps(table, indent=2))
+    data.write_text(strict_json.dumps(table, indent=2))
     return markdown, data
 
 

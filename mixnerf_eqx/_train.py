@@ -19,6 +19,7 @@ from typing import Any
 import equinox as eqx
 import jax
 
+from . import _json as strict_json
 from ._checkpoint import (
     CheckpointError,
     latest_checkpoint,
@@ -121,7 +122,7 @@ class _RunLog:
 
     def _write(self, entry: dict[str, Any]) -> None:
         # Flushed at once, so that `tail -f` follows the run and a crash loses no entry.
-        self.file.write(json.dumps(entry) + "\n")
+        self.file.write(strict_json.dumps(entry) + "\n")
         self.file.flush()
 
     def sync(self) -> None:
@@ -443,5 +444,5 @@ def _final_report(
         "render": render_summary(result.counts, result.seconds, len(result.per_view), grid, choice),
         "config": config_to_dict(config),
     }
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    (run_dir / "metrics.json").write_text(strict_json.dumps(metrics, indent=2))
     return metrics

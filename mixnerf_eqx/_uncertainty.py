@@ -9,6 +9,7 @@ minimising the negative log-likelihood of pixels that the model did not train on
 """
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,7 +23,15 @@ from jaxtyping import Array, Float
 from ._images import save_png
 from ._interrupt import raise_if_interrupted
 from ._model import MixNeRF
-from ._predictive import DEFAULT_MASSES, ColourMixture, PredictiveSummary, predictive, summarise
+from ._predictive import (
+    DEFAULT_MASSES,
+    ColourMixture,
+    PredictiveSummary,
+    _check_level,
+    _check_temperature,
+    predictive,
+    summarise,
+)
 from ._rays import RayBundle
 from .data import Views, rays_for_views
 
@@ -101,8 +110,11 @@ def predict_rays(
     """
     if chunk < 1:
         raise ValueError(f"chunk must be at least 1, got {chunk}")
-    masses = tuple(float(mass) for mass in masses)
+    masses = tuple(float(_check_level(mass, "an interval mass")) for mass in masses)
+    _check_temperature(temperature)
     batch_shape = rays.batch_shape
+    if math.prod(batch_shape) == 0:
+        return _no_rays(model, rays, masses, targets is not None, with_mode)
     count, chunk, pieces = _chunks(rays, chunk, targets)
     scale = jnp.asarray(temperature, jnp.float32)
     parts: list[dict[str, np.ndarray]] = []
@@ -127,6 +139,26 @@ def predict_rays(
     result["masses"] = np.asarray(masses)
     return result
 
+
+
+def _no_rays(
+    model: MixNeRF, rays: RayBundle, masses: tuple[float, ...], with_targets: bool, with_mode: bool
+) -> dict[str, np.ndarray]:
+    """`predict_rays`'s answer for a batch without rays: every field, empty, at its shape."""
+    one = jax.tree_util.tree_map(lambda x: jnp.ones((1, *jnp.shape(x)[len(rays.batch_shape) :]), jnp.float32), rays)
+    one = eqx.tree_at(lambda r: r.far, one, 2.0 * one.near)
+    target = jnp.zeros((1, 3), jnp.float32) if with_targets else None
+    shapes = eqx.filter_eval_shape(_summarise_rays, model, one, jnp.float32(1.0), target, masses, with_mode)
+    fields = {f.name: getattr(shapes, f.name) for f in dataclasses.fields(shapes) if f.name != "masses"}
+    result = {}
+    for name, shape in fields.items():
+        if shape is None:
+            continue
+        lead = shape.shape[:1] if name.endswith(("_lower", "_upper")) else ()
+        rest = shape.shape[len(lead) + 1 :]
+        result[name] = np.zeros((*lead, *rays.batch_shape, *rest), np.dtype(shape.dtype))
+    result["masses"] = np.asarray(masses)
+    return result
 
 def _to_host(summary: PredictiveSummary) -> dict[str, np.ndarray]:
     fields = {f.name: getattr(summary, f.name) for f in dataclasses.fields(summary) if f.name != "masses"}

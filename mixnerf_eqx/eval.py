@@ -9,7 +9,7 @@ the arrays in `uncertainty.npz`, and the calibration measures (`docs/predictive.
 """
 
 import argparse
-import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -17,6 +17,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from . import _json as strict_json
 from ._cli import report_error
 from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._config import ConfigError
@@ -212,7 +213,7 @@ def run(args: argparse.Namespace) -> dict:
         result["uncertainty"] = _uncertainty(
             restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
         )
-    (out / "metrics.json").write_text(json.dumps(result, indent=2))
+    (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
     _print_summary(result, grid, choice, out, not args.no_renders)
     return result
 
@@ -236,8 +237,8 @@ def _uncertainty(restored: Run, views, chunk: int, out: Path, *, temperature: fl
 def _check_arguments(args: argparse.Namespace) -> None:
     if args.chunk is not None and args.chunk < 1:
         raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
-    if not args.temperature > 0:
-        raise ConfigError(f"--temperature must be positive, got {args.temperature}")
+    if not (math.isfinite(args.temperature) and args.temperature > 0):
+        raise ConfigError(f"--temperature must be a finite positive number, got {args.temperature}")
     if args.max_views < 0:
         raise ConfigError(f"--max-views must be 0 (all test views) or positive, got {args.max_views}")
 

@@ -9,7 +9,6 @@ time in chunks of rays (memory stays bounded) and written to `RUN_DIR/video/<pat
 """
 
 import argparse
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -17,6 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from . import _json as strict_json
 from ._cli import report_error
 from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._config import ConfigError
@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> dict:
         "skipping": skipping is not None,
         "seconds": video.seconds,
     }
-    video.path.with_suffix(".json").write_text(json.dumps(summary, indent=2))
+    video.path.with_suffix(".json").write_text(strict_json.dumps(summary, indent=2))
     print(
         f"{video.path}: {video.num_frames} frames at {video.fps:g} fps, {video.width}x{video.height} "
         f"({' | '.join(summary['panels'])}), rendered in {video.seconds:.1f} s"
