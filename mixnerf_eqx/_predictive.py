@@ -61,6 +61,7 @@ def mixing_coefficients(weights: PerSample) -> PerSample:
 # Quantile levels: a sequence of numbers, or a 1-d array of them.
 Levels = Sequence[ScalarLike] | Float[Array, " _"] | Float[np.ndarray, " _"]
 
+
 def _inverse_scale(scale: Float[Array, "*#batch"]) -> Float[Array, "*#batch"]:
     # exp(-log b) rather than 1 / b, so that a scale that underflowed to 0 gives the largest
     # finite inverse instead of inf (and 0 * inf = NaN for a sample sitting on the location).
