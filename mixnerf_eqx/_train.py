@@ -290,16 +290,17 @@ def fit(
     """
     run_dir = Path(config.train.run_dir)
     created = _prepare_run_dir(run_dir)
-    try:
-        # One writer per run folder: a second `fit` on it fails here, before touching it.
-        with hold_folder(run_dir):
+    # One writer per run folder: a second `fit` on it fails here, before touching it (and never
+    # removes it: the folder may be the other writer's, just created).
+    with hold_folder(run_dir):
+        try:
             return _fit_holding(
                 config, run_dir, dataset, resume, progress, write_renders, log_every, stop_after
             )
-    except BaseException:
-        if created:
-            _remove_if_unused(run_dir)
-        raise
+        except BaseException:
+            if created:
+                _remove_if_unused(run_dir)
+            raise
 
 
 def _fit_holding(
