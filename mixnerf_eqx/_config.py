@@ -445,8 +445,12 @@ def _apply(base: Any, values: dict[str, Any], where: str) -> Any:
             )
             continue
         if key not in names:
-            raise ConfigError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(names))})")
-        updates[key] = _coerce(value, hints[key], f"{where}: {key}")
+            # The key first, on a line of its own: `where` may list every override given.
+            raise ConfigError(
+                f"unknown key {key!r} in [{section}] ({section}.{key})\n"
+                f"  given in: {where}\n  known keys of [{section}]: {', '.join(sorted(names))}"
+            )
+        updates[key] = _coerce(value, hints[key], f"{section}.{key} (given in {where})")
     return dataclasses.replace(base, **updates)
 
 

@@ -17,7 +17,6 @@ component.
 
 import math
 from collections.abc import Sequence
-from typing import Literal
 
 import equinox as eqx
 import jax
@@ -538,8 +537,8 @@ def predictive(
     model: MixNeRF,
     rays: RayBundle,
     *,
-    colour_level: Literal["coarse", "fine"] = "coarse",
-    depth_level: Literal["coarse", "fine"] = "fine",
+    colour_level: str = "coarse",  # "coarse" or "fine": checked below, with a one-line error
+    depth_level: str = "fine",
     temperature: ScalarLike = 1.0,
 ) -> Predictive:
     """What `model` predicts for `rays` (any batch shape), as distributions.

@@ -214,13 +214,18 @@ def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> 
     return changed
 
 
-def check_resumable(checkpoint: Path, stored: dict[str, Any], config: Config) -> None:
-    """Raises `ConfigError` unless `config` may continue the run `stored` was written by."""
+def check_resumable(
+    checkpoint: Path,
+    stored: dict[str, Any],
+    config: Config,
+    remedy: str = "choose another train.run_dir to start a new run",
+) -> None:
+    """Raises `ConfigError` unless `config` may continue the run `stored` was written by; the
+    message ends with `remedy`."""
     # Read through the schema, so that keys older versions wrote compare as they are read now.
     stored = config_to_dict(config_from_dict(stored, str(checkpoint / "meta.json")))
     changed = _differences(_comparable(stored), _comparable(config_to_dict(config)))
     if changed:
         raise ConfigError(
-            f"{checkpoint} was written with different settings ({', '.join(changed)}); "
-            "choose another train.run_dir to start a new run"
+            f"{checkpoint} was written with different settings ({', '.join(changed)}); {remedy}"
         )

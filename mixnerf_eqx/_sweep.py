@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 
 from . import _json as strict_json
+from ._checkpoint import CheckpointError, latest_checkpoint, read_checkpoint_meta
 from ._config import Config, ConfigError, config_from_dict
-from ._run import check_resumable
+from ._run import check_resumable, continued_config
 from .data import blender, dtu, llff
 
 # The scenes whose mean a paper's table reports, by dataset format.
@@ -56,6 +57,36 @@ def benchmark_scenes(config: Config) -> tuple[str, ...]:
     return scenes
 
 
+SWEEP_REMEDY = "the sweep folder holds runs of other settings: choose another --out"
+
+
+def _check_scene_names(config: Config, scenes: Sequence[str]) -> None:
+    """Refuses, before any run, a scene that is neither its benchmark's nor a folder of the
+    dataset's root (a scene whose files are missing still fails only its own runs)."""
+    from .data import DatasetError, UnknownSceneError, data_root, find_scene
+
+    known = BENCHMARK_SCENES.get(config.data.dataset) or ()
+    if not known or all(scene in known for scene in scenes):
+        return
+    try:
+        root = data_root(config.data)
+    except DatasetError:
+        root = None
+    for scene in scenes:
+        if scene in known:
+            continue
+        if root is None:
+            raise ConfigError(
+                f"unknown {config.data.dataset} scene {scene!r}: the benchmark's scenes are {', '.join(known)}"
+            )
+        try:
+            find_scene(root, config.data.dataset, scene)
+        except UnknownSceneError as error:
+            raise ConfigError(str(error).replace("Fix data.scene.", "Fix --scenes.")) from None
+        except DatasetError:
+            pass
+
+
 def plan_sweep(
     config: Config, out: Path, *, scenes: Sequence[str] | None = None, seeds: Sequence[int] = (0,)
 ) -> list[SweepRun]:
@@ -63,8 +94,11 @@ def plan_sweep(
     scenes = tuple(scenes) if scenes else benchmark_scenes(config)
     if not seeds:
         raise ConfigError("a sweep needs at least one seed")
-    if len(set(seeds)) != len(seeds) or len(set(scenes)) != len(scenes):
-        raise ConfigError("a sweep's scenes and seeds must each be listed once")
+    for what, values in (("seed", seeds), ("scene", scenes)):
+        repeated = sorted({str(value) for value in values if list(values).count(value) > 1})
+        if repeated:
+            raise ConfigError(f"a sweep lists each {what} once; listed more than once: {', '.join(repeated)}")
+    _check_scene_names(config, scenes)
     runs = []
     for scene in scenes:
         for seed in seeds:
@@ -93,7 +127,7 @@ def finished_metrics(run: SweepRun) -> dict[str, Any] | None:
         return None  # cut short: the run's final evaluation is made again
     if "test" not in metrics or metrics.get("step", 0) < run.config.train.max_steps:
         return None
-    check_resumable(run.run_dir, metrics["config"], run.config)
+    check_resumable(run.run_dir, metrics["config"], run.config, SWEEP_REMEDY)
     return metrics
 
 
@@ -108,12 +142,26 @@ def _kept(metrics: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _check_unfinished(config: Config) -> None:
+    """Refuses, with the sweep's remedy, to resume a run whose checkpoint has other settings
+    (`fit` would say the same, naming `train.run_dir`, which a sweep user does not choose)."""
+    latest = latest_checkpoint(config.train.run_dir)
+    if latest is None:
+        return
+    try:
+        stored = read_checkpoint_meta(latest)["config"]
+    except CheckpointError:
+        return  # `fit` falls back to an older checkpoint, and checks that one
+    check_resumable(latest, stored, continued_config(config, stored), SWEEP_REMEDY)
+
+
 def run_one(config: Config, progress: bool = False) -> dict[str, Any]:
     """Trains (or resumes) and evaluates one run; returns its final metrics. What a job runs."""
     from ._train import fit
 
     metrics = finished_metrics(SweepRun(config.data.scene, config.train.seed, config))
     if metrics is None:
+        _check_unfinished(config)
         metrics = fit(config, progress=progress).metrics
     return _kept(metrics)
 
@@ -241,8 +289,15 @@ def format_markdown(table: dict[str, Any]) -> str:
     notes = []
     benchmark = table["benchmark_scenes"]
     if benchmark and sorted(table["scenes"]) != sorted(benchmark):
+        # A scene counts as run when at least one of its seeds finished.
+        ran = [
+            scene
+            for scene in table["scenes"]
+            if scene in benchmark
+            and sum(missing.startswith(f"{scene} seed ") for missing in table["missing"]) < len(table["seeds"])
+        ]
         notes.append(
-            f"Only {len(table['scenes'])} of the benchmark's {len(benchmark)} scenes were run: the mean "
+            f"Only {len(ran)} of the benchmark's {len(benchmark)} scenes were run: the mean "
             "is not comparable with the published number."
         )
     if table["missing"]:

@@ -399,14 +399,17 @@ def _final_report(
 ) -> dict[str, Any]:
     """Scores every validation view, renders and scores every test view, writes
     `metrics.json` (and the test views' PNGs)."""
-    renders = run_dir / "renders"
+    renders, staging = run_dir / "renders", run_dir / "renders.partial"
+    # The PNGs go to a staging folder that replaces `renders/` only once every view is written:
+    # an interrupted final evaluation leaves the run folder as it was.
+    shutil.rmtree(staging, ignore_errors=True)
     bar = Progress(dataset.test.num_views, unit="view", enabled=progress)
 
     def write_view(index: int, entry: dict[str, Any], rendered: Rendered) -> None:
         bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
         if write_renders:
             truth = dataset.test.images[index]
-            write_view_renders(renders, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
+            write_view_renders(staging, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
 
     grid = skipping = choice = None
     if state.grid is not None:
@@ -430,6 +433,9 @@ def _final_report(
         result: Evaluation = evaluate(
             state.model, dataset, chunk=chunk, on_view=write_view, skipping=skipping
         )
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     finally:
         bar.close()
     metrics = {
@@ -445,5 +451,17 @@ def _final_report(
         "render": render_summary(result.counts, result.seconds, len(result.per_view), grid, choice),
         "config": config_to_dict(config),
     }
-    (run_dir / "metrics.json").write_text(strict_json.dumps(metrics, indent=2))
+    if write_renders:
+        staging.mkdir(exist_ok=True)
+        shutil.rmtree(renders, ignore_errors=True)
+        staging.replace(renders)
+    _write_replacing(run_dir / "metrics.json", strict_json.dumps(metrics, indent=2))
     return metrics
+
+
+def _write_replacing(path: Path, text: str) -> None:
+    """Writes `path` under a staging name and renames it into place: a reader sees the old
+    file or the new one, never half of one."""
+    staging = path.with_name(path.name + ".partial")
+    staging.write_text(text)
+    os.replace(staging, path)

@@ -8,6 +8,7 @@ closed as a playable file of the frames so far and named `*.partial.mp4`.
 
 import contextlib
 import dataclasses
+import os
 import subprocess
 import time
 from collections.abc import Callable
@@ -24,6 +25,21 @@ from ._rays import RayBundle
 from ._skipping import Skipping
 from .data import Dataset, rays_at_poses, rays_for_views
 
+
+def check_destination(path: Path) -> None:
+    """Says in one `ValueError` why the video file `path` (and its `.partial.mp4` beside it)
+    cannot be written, before any frame is rendered: a folder of that name, a file where a
+    folder above it should be, or a folder that cannot be written."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"the video {path} is an existing folder; name a file")
+    ancestor = path.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ValueError(f"cannot write the video {path}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot write the video {path}: {ancestor} is not writable")
 
 def side_by_side(panels: list[Float[np.ndarray, "height width channels"]]) -> np.ndarray:
     """The panels left to right as one 8-bit frame, padded with white to even sides (the
@@ -67,6 +83,7 @@ class VideoWriter:
 
     def __init__(self, path: Path, fps: float, *, frames_dir: Path | None = None, crf: int = 18):
         self.path, self.fps, self.crf, self.frames_dir = Path(path), fps, crf, frames_dir
+        check_destination(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if frames_dir is not None:
             frames_dir.mkdir(parents=True, exist_ok=True)

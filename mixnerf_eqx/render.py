@@ -25,7 +25,7 @@ from ._progress import Progress
 from ._rays import RayBundle
 from ._run import Run, grid_for_rendering, make_skipping, restore_run
 from ._typecheck import add_typecheck_argument, typecheck_argument
-from ._video import render_video
+from ._video import check_destination, render_video
 from .data import DatasetError
 
 
@@ -100,6 +100,8 @@ def _colour_spread(run: Run, chunk: int) -> Callable[[RayBundle], np.ndarray]:
 
 def run(args: argparse.Namespace) -> dict:
     """Renders the video `args` ask for and returns what was written to its JSON file."""
+    if args.out is not None:
+        check_destination(args.out)  # before loading the run, and before any frame
     restored = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
     config = restored.config
     skipping = None

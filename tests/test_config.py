@@ -21,8 +21,20 @@ def test_every_shipped_config_loads(path):
 def test_unknown_key_names_key_and_file(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text("[model]\nwidht = 3\n")
-    with pytest.raises(ConfigError, match=r"bad\.toml.*'widht'"):
+    with pytest.raises(ConfigError, match=r"unknown key 'widht' in \[model\]") as error:
         load_config(path)
+    assert "bad.toml" in str(error.value)
+
+
+def test_an_unknown_override_is_named_first_on_its_own_line():
+    overrides = ["train.max_steps=10", "model.width=5", "train.bogus=3"]
+    with pytest.raises(ConfigError) as error:
+        load_config(None, overrides)
+    first, *rest = str(error.value).splitlines()
+    assert first == "unknown key 'bogus' in [train] (train.bogus)"
+    assert any("train.max_steps=10" in line for line in rest)
+    with pytest.raises(ConfigError, match=r"^train\.max_steps \(given in"):
+        load_config(None, ["train.max_steps=ten"])
 
 
 def test_unknown_section_names_key_and_file(tmp_path):

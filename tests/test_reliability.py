@@ -115,6 +115,31 @@ def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatc
     assert calls["count"] == 2
 
 
+
+def test_ctrl_c_in_the_final_render_leaves_the_run_folder_as_it_was(tiny_config, tiny_scene, monkeypatch):
+    config = _with(tiny_config, "train", max_steps=2)
+    run_dir = Path(config.train.run_dir)
+    original, calls = train_module.write_view_renders, {"count": 0}
+
+    def interrupted(*args, **kwargs):
+        calls["count"] += 1
+        if calls["count"] == 2:
+            signal.raise_signal(signal.SIGINT)  # a real Ctrl-C after the first view's PNGs
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "write_view_renders", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        mx.fit(config, dataset=tiny_scene, progress=False, log_every=2)
+    assert calls["count"] == 2
+    assert not (run_dir / "renders").exists() and not (run_dir / "renders.partial").exists()
+    assert not (run_dir / "metrics.json").exists()
+    monkeypatch.setattr(train_module, "write_view_renders", original)
+    # Run again: the final evaluation is made in full, every test view's three PNGs at once.
+    mx.fit(config, dataset=tiny_scene, progress=False, log_every=2)
+    names = sorted(p.name for p in (run_dir / "renders").iterdir())
+    assert len(names) == 3 * tiny_scene.test.num_views and (run_dir / "metrics.json").exists()
+    assert not (run_dir / "renders.partial").exists()
+
 def _corrupt(path: Path, how: str) -> None:
     if how == "empty":
         path.write_bytes(b"")

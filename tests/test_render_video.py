@@ -201,6 +201,28 @@ def test_render_refuses_meaningless_arguments(trained_run, arguments, message, c
     assert error.startswith("error: ") and message in error and "\n" not in error
 
 
+
+@pytest.mark.parametrize("where", ["folder", "under_a_file"])
+def test_a_video_destination_that_cannot_be_written_is_refused_before_loading(where, tmp_path, capsys, monkeypatch):
+    if where == "folder":
+        out = tmp_path / "x.mp4"
+        out.mkdir()
+        message = f"the video {out} is an existing folder"
+    else:
+        (tmp_path / "plain").write_text("")
+        out = tmp_path / "plain" / "deeper" / "x.mp4"
+        message = f"{tmp_path / 'plain'} is a file, not a folder"
+
+    def no_loading(*args, **kwargs):
+        raise AssertionError("the run was loaded before the destination was checked")
+
+    monkeypatch.setattr(render, "restore_run", no_loading)
+    # The run folder is not even a run: the destination is what is checked first.
+    assert render.main([str(tmp_path), "--out", str(out), "--no-progress"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("error: ") and message in error and "\n" not in error
+    assert "partial" not in error
+
 def test_render_of_a_folder_that_is_no_run_is_one_clear_error(tmp_path, capsys):
     assert render.main([str(tmp_path)]) == 2
     assert "is not a training run" in capsys.readouterr().err

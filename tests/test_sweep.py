@@ -27,7 +27,7 @@ def test_the_plan_covers_the_benchmark_with_every_seed(tmp_path):
     assert len({run.run_dir for run in runs}) == len(runs)
     assert all(run.config.data.scene == run.scene and run.config.train.seed == run.seed for run in runs)
     assert runs[-1].run_dir == tmp_path / "trex" / "seed_3"
-    with pytest.raises(mx.ConfigError, match="listed once"):
+    with pytest.raises(mx.ConfigError, match="listed more than once: fern"):
         plan_sweep(config, tmp_path, scenes=["fern", "fern"])
 
 
@@ -153,6 +153,34 @@ def test_missing_scene_files_fail_that_run_only(tmp_path, capsys):
     assert sweep.main(arguments) == 1
     table = json.loads((tmp_path / "s" / "table.json").read_text())
     assert "fern" in table["failed"]["fern seed 0"] and table["missing"] == ["fern seed 0"]
+    # The note counts the scenes that finished, not the scenes asked for.
+    assert "Only 0 of the benchmark's 8 scenes were run" in (tmp_path / "s" / "table.md").read_text()
+
+
+def test_an_unknown_scene_is_refused_before_any_run(tmp_path, capsys):
+    arguments = ["--config", "configs/llff3.toml", "--scenes", "fern,fernn", "--data-dir", str(tmp_path)]
+    assert sweep.main([*arguments, "--out", str(tmp_path / "s")]) == 2
+    error = capsys.readouterr().err
+    assert "unknown llff scene 'fernn'" in error and "Fix --scenes" in error
+    assert not (tmp_path / "s" / "fern").exists()
+    # A folder of the dataset's root that is not a benchmark scene is a scene too.
+    (tmp_path / "nerf_llff_data" / "garden_gnome").mkdir(parents=True)
+    assert sweep.main([*arguments[:3], "garden_gnome", *arguments[4:], "--out", str(tmp_path / "t")]) == 1
+
+
+def test_a_repeated_seed_or_scene_is_named(tmp_path, capsys):
+    assert sweep.main(["--out", str(tmp_path), "--seeds", "0,1,0", *SWEEP_OVERRIDES]) == 2
+    assert "listed more than once: 0" in capsys.readouterr().err
+
+
+def test_resuming_an_unfinished_run_with_other_settings_names_the_sweep_folder(tmp_path):
+    out = tmp_path / "sweep"
+    config = mx.load_config("configs/builtin.toml", SWEEP_OVERRIDES)
+    mx.fit(plan_sweep(config, out)[0].config, progress=False, stop_after=3)
+    assert sweep.main(_sweep_arguments(out, "loss.lambda_depth=0.5")) == 1
+    failed = json.loads((out / "table.json").read_text())["failed"]["builtin seed 0"]
+    assert "loss.lambda_depth: 0.001 -> 0.5" in failed
+    assert "choose another --out" in failed and "train.run_dir" not in failed
 
 
 def test_a_sweep_on_submitits_local_executor(tmp_path, monkeypatch):

@@ -155,3 +155,9 @@ def test_rays_with_near_beyond_far_are_refused(tiny_model):
 def test_predict_rays_checks_its_numbers_before_rendering(tiny_model, bad):
     with pytest.raises(ValueError, match="temperature must be a finite positive number|must lie in"):
         mx.predict_rays(tiny_model, _rays(2), chunk=4, **bad)
+
+
+@pytest.mark.parametrize("name", ["colour_level", "depth_level"])
+def test_a_level_name_that_is_neither_coarse_nor_fine_is_one_line(tiny_model, name):
+    with pytest.raises(ValueError, match=f"^{name} must be 'coarse' or 'fine', got 'both'$"):
+        mx.predictive(tiny_model, _rays(2), **{name: "both"})

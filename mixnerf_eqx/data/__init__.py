@@ -15,6 +15,7 @@ from ._dataset import Views as Views
 from ._dataset import rays_at_poses as rays_at_poses
 from ._dataset import rays_for_views as rays_for_views
 from ._errors import DatasetError as DatasetError
+from ._errors import UnknownSceneError as UnknownSceneError
 from ._registry import DATASETS as DATASETS
 from ._registry import ENV_DATA_DIR as ENV_DATA_DIR
 from ._registry import data_root as data_root

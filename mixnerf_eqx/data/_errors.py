@@ -7,3 +7,7 @@ class DatasetError(ValueError):
     The message names the file or folder at fault and says what to do about it, so that the
     command-line tools can print it as it is, without a traceback.
     """
+
+
+class UnknownSceneError(DatasetError):
+    """A scene that is neither one of its benchmark's nor a folder of the dataset's root."""

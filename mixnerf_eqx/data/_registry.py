@@ -20,7 +20,7 @@ from pathlib import Path
 from .._config import DataConfig
 from . import blender, dtu, llff, transforms
 from ._dataset import Dataset
-from ._errors import DatasetError
+from ._errors import DatasetError, UnknownSceneError
 
 __all__ = ["DATASETS", "ENV_DATA_DIR", "data_root", "find_scene", "load_dataset"]
 
@@ -86,7 +86,7 @@ def find_scene(root: Path, dataset: str, scene: str) -> Path:
         if folder.is_dir()
     )
     if known and scene not in known:
-        raise DatasetError(
+        raise UnknownSceneError(
             f"unknown {dataset} scene {scene!r}: there is no {looked}. The benchmark's scenes are "
             f"{', '.join(known)}; {found}. Fix data.scene."
         )
