@@ -449,16 +449,29 @@ def _scalar(value, name: str):
     return value
 
 
+def _checked(value, ok, message: str):
+    """`value` if `ok(xp, value)` holds everywhere (`xp`: numpy for a concrete value, jax.numpy
+    for a traced one): else a `ValueError` at once, or, where traced, an error when computed."""
+    if _is_traced(value):
+        return eqx.error_if(value, ~jnp.all(ok(jnp, value)), message)
+    values = np.asarray(value, np.float64)
+    bad = values[~ok(np, values)]  # NaN fails every check
+    if bad.size:
+        raise ValueError(f"{message}, got {bad.tolist()[0] if values.ndim == 0 else bad.tolist()}")
+    return value
+
+
+def _in_unit_interval(xp, x):
+    return (x > 0) & (x < 1)
+
+
+def _finite_positive(xp, x):
+    return xp.isfinite(x) & (x > 0)
+
+
 def _check_level(level: ScalarLike, name: str = "a quantile level or interval mass"):
-    """`level`, checked to lie in (0, 1): at once where it is concrete, when it is computed
-    (`eqx.error_if`) where it is traced."""
-    level = _scalar(level, name)
-    message = f"{name} must lie in (0, 1)"
-    if _is_traced(level):
-        return eqx.error_if(level, ~((level > 0) & (level < 1)), message)
-    if not 0.0 < float(level) < 1.0:  # NaN fails too
-        raise ValueError(f"{message}, got {level}")
-    return level
+    """`level`, checked to lie in (0, 1) (see `_checked`)."""
+    return _checked(_scalar(level, name), _in_unit_interval, f"{name} must lie in (0, 1)")
 
 
 def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
@@ -470,25 +483,13 @@ def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
     if not isinstance(levels, np.ndarray | jax.Array) or np.ndim(levels) != 1 or np.shape(levels)[0] == 0:
         raise ValueError(f"quantile levels must be a non-empty sequence or 1-d array, got {levels!r}")
     message = "a quantile level or interval mass must lie in (0, 1)"
-    if _is_traced(levels):
-        levels = jnp.asarray(levels, dtype)
-        return eqx.error_if(levels, ~jnp.all((levels > 0) & (levels < 1)), message)
-    values = np.asarray(levels, np.float64)
-    bad = values[~((values > 0) & (values < 1))]
-    if bad.size:
-        raise ValueError(f"{message}, got {bad.tolist()}")
-    return jnp.asarray(levels, dtype)
+    return jnp.asarray(_checked(levels, _in_unit_interval, message), dtype)
 
 
 def _check_temperature(temperature: ScalarLike):
-    """`temperature`, checked to be finite and positive (where traced, when computed)."""
+    """`temperature`, checked to be finite and positive (see `_checked`)."""
     temperature = _scalar(temperature, "temperature")
-    message = "temperature must be a finite positive number"
-    if _is_traced(temperature):
-        return eqx.error_if(temperature, ~(jnp.isfinite(temperature) & (temperature > 0)), message)
-    if not (math.isfinite(float(temperature)) and float(temperature) > 0):
-        raise ValueError(f"{message}, got {temperature}")
-    return temperature
+    return _checked(temperature, _finite_positive, "temperature must be a finite positive number")
 
 
 class Predictive(eqx.Module):
@@ -518,6 +519,7 @@ def _check_bounds(rays: RayBundle) -> RayBundle:
     if reversed_rays:
         raise ValueError(f"{message}: {reversed_rays} of {math.prod(rays.batch_shape)} rays have near > far")
     return rays
+
 
 def colour_mixture(level: LevelOutputs, temperature: ScalarLike = 1.0) -> ColourMixture:
     """The colour mixture of one level's render (a model with mixture heads), its scales
