@@ -15,7 +15,9 @@ Two formulations compute the same values and gradients:
   every corner's update into the table in a single scatter-add. On a CPU, XLA fuses the
   per-point formulation's gradient into loops that recompute the cotangent for every
   scattered element and reduce over the corner axis element by element; this one keeps
-  each loop a plain row copy or row update (`benchmarks/README.md`, "The CPU step").
+  each loop a plain row copy or row update (`benchmarks/README.md`, "The CPU step"). The
+  tri-plane encoding's product of three planes has one of its own, `plane_product`, whose
+  gradient forms each plane's features once and scatters 2x2 windows.
 
 Only the batch knows every point that shares a row, so this is the one place in the fields
 written for a batch rather than for one point.
@@ -87,3 +89,71 @@ def _weighted_rows_bwd(residuals, cotangent):
 
 
 weighted_rows.defvjp(_weighted_rows_fwd, _weighted_rows_bwd)
+
+
+def _in_own_buffers(arrays, guard: Int[Array, ""]):
+    """`arrays`, unchanged, each computed once into a buffer of its own.
+
+    XLA's CPU compiler fuses cheap producers (gathers, products) into every consumer, so a
+    value read by several loops is recomputed by each; `jax.lax.optimization_barrier` is gone
+    before that pass runs. The operands of a conditional are buffers, so one stands here.
+    `guard` is known to be non-negative (a clamped texel index): the zero branch is never
+    taken and only keeps the conditional from being simplified away.
+    """
+    return jax.lax.cond(guard < 0, lambda xs: jax.tree_util.tree_map(jnp.zeros_like, xs), lambda xs: xs, arrays)
+
+
+@jax.custom_vjp
+def plane_product(
+    planes: Float[Array, "3 resolution resolution features"],
+    indices: Int[Array, "3 4 *batch"],
+    weights: Float[Array, "3 4 *batch"],
+) -> Float[Array, "*batch features"]:
+    """The product over a tri-plane level's three planes of each plane's bilinear lookup.
+
+    `indices[p, k]` are rows of the planes flattened to `(3 * resolution^2, features)`, and the
+    four corners of a plane are the 2x2 window that starts at corner 0, in the order
+    `(0, 0), (0, 1), (1, 0), (1, 1)` (row, column), as `_plane_corners` in `grid.py` makes
+    them; the windows must lie inside their planes (the encoding clamps them).
+
+    The gradient is written for the CPU: the three planes' features and the cotangent are
+    formed once (`_in_own_buffers`), each plane's cotangent is the product of the other
+    two, and the four corners of all three planes are added into the planes in one windowed
+    scatter. The gradient with respect to `weights` is exact too.
+    """
+    table = planes.reshape(-1, planes.shape[-1])
+    first, second, third = (_gathered_sum(table, indices[p], weights[p]) for p in range(3))
+    return first * second * third
+
+
+def _plane_product_fwd(planes, indices, weights):
+    table = planes.reshape(-1, planes.shape[-1])
+    features = tuple(_gathered_sum(table, indices[p], weights[p]) for p in range(3))
+    return features[0] * features[1] * features[2], (planes, indices, weights, features)
+
+
+def _plane_product_bwd(residuals, cotangent):
+    planes, indices, weights, features = residuals
+    guard = indices.reshape(-1)[0]
+    features = _in_own_buffers(features, guard)
+    cotangent = _in_own_buffers(cotangent, guard)
+    first, second, third = features
+    # The cotangent of each plane's lookup: (3, *batch, features).
+    per_plane = jnp.stack([cotangent * second * third, cotangent * first * third, cotangent * first * second])
+    res, width = planes.shape[1], planes.shape[-1]
+    # Each corner-0 row of the flattened planes as (row, column) of the planes stacked to
+    # (3 * resolution, resolution): a window never crosses into the next plane.
+    starts = jnp.stack(jnp.divmod(indices[:, 0], res), axis=-1).reshape(-1, 2)
+    corner_weights = jnp.moveaxis(weights, 1, -1).reshape(*per_plane.shape[:-1], 2, 2)
+    updates = (corner_weights[..., None] * per_plane[..., None, None, :]).reshape(-1, 2, 2, width)
+    numbers = jax.lax.ScatterDimensionNumbers(
+        update_window_dims=(1, 2, 3), inserted_window_dims=(), scatter_dims_to_operand_dims=(0, 1)
+    )
+    stacked = jnp.zeros((3 * res, res, width), planes.dtype)
+    stacked = jax.lax.scatter_add(stacked, starts, updates, numbers, mode=jax.lax.GatherScatterMode.CLIP)
+    table = planes.reshape(-1, width)
+    weights_cotangent = jnp.sum(table[indices] * per_plane[:, None], axis=-1)
+    return stacked.reshape(planes.shape), None, weights_cotangent
+
+
+plane_product.defvjp(_plane_product_fwd, _plane_product_bwd)

@@ -28,7 +28,7 @@ from jaxtyping import Array, Float, Int
 
 from .._custom_types import PRNGKey, RayKeys, Vec3
 from .._encoding import positional_encoding
-from ._lookup import resolve_lookup, weighted_rows
+from ._lookup import plane_product, resolve_lookup, weighted_rows
 from .base import AbstractField, FieldOutputs, safe_norm, vmap_field
 from .mip_mlp import _dense
 
@@ -75,7 +75,7 @@ class AbstractGridEncoding(eqx.Module):
     @abc.abstractmethod
     def encode_batch(self, points: Float[Array, "batch 3"]) -> Float[Array, "batch levels features"]:
         """The features of a batch of points: `jax.vmap(self)(points)`, computed with
-        `weighted_rows` (the batched formulation of `mixnerf_eqx._field._lookup`)."""
+        `weighted_rows` or `plane_product` (the batched formulations of `mixnerf_eqx._field._lookup`)."""
 
     def total_variation(self) -> Float[Array, ""]:
         """Mean squared difference of neighbouring grid values, summed over levels (0 if the
@@ -152,13 +152,7 @@ class TriPlaneEncoding(AbstractGridEncoding):
         return jnp.stack([jnp.prod(_plane_lookup(planes, point), axis=0) for planes in self.planes])
 
     def encode_batch(self, points: Float[Array, "batch 3"]) -> Float[Array, "batch levels features"]:
-        rows = []
-        for planes in self.planes:
-            table = planes.reshape(-1, planes.shape[-1])
-            indices, weights = _plane_corners(planes.shape[1], points)
-            # Plane by plane, so that each product's cotangent is a contiguous array.
-            yz, xz, xy = (weighted_rows(table, indices[k], weights[k]) for k in range(3))
-            rows.append(yz * xz * xy)
+        rows = [plane_product(planes, *_plane_corners(planes.shape[1], points)) for planes in self.planes]
         return jnp.stack(rows, axis=1)
 
     def total_variation(self) -> Float[Array, ""]:
