@@ -27,10 +27,12 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._config import Config as Config
     from ._config import ConfigError as ConfigError
     from ._config import ScheduleSteps as ScheduleSteps
+    from ._config import SettingWarning as SettingWarning
     from ._config import config_from_dict as config_from_dict
     from ._config import config_to_dict as config_to_dict
     from ._config import load_config as load_config
     from ._config import schedule_steps as schedule_steps
+    from ._config import setting_warnings as setting_warnings
     from ._encoding import conical_frustum_moments as conical_frustum_moments
     from ._encoding import frustum_gaussians as frustum_gaussians
     from ._encoding import integrated_positional_encoding as integrated_positional_encoding

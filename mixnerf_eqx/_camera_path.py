@@ -8,11 +8,13 @@ looking at one point on its axis. The orbit circles the point that the cameras' 
 pass closest to, at their mean distance and elevation, about their mean up direction.
 """
 
+import warnings
 from typing import Literal
 
 import numpy as np
 from jaxtyping import Float
 
+from ._config import SettingWarning
 from ._custom_types import PoseStack
 from .data import Dataset
 from .data._poses import average_pose
@@ -133,8 +135,17 @@ def camera_path(dataset: Dataset, kind: PathKind = "auto", num_frames: int = 120
     if num_frames < 1:
         raise ValueError(f"a camera path needs at least one frame, got {num_frames}")
     poses = np.concatenate([dataset.train.camtoworlds, dataset.test.camtoworlds]).astype(np.float64)
+    natural = "spiral" if dataset.train.ndc else "orbit"
+    if kind in ("spiral", "orbit") and kind != natural:
+        scene = "a forward-facing" if dataset.train.ndc else "a 360-degree"
+        warnings.warn(
+            f"a{'n' if kind == 'orbit' else ''} {kind} through {scene} scene leaves the views it was "
+            f"trained on (the {natural} is its path; --path auto chooses it)",
+            SettingWarning,
+            stacklevel=2,
+        )
     if kind == "auto":
-        kind = "spiral" if dataset.train.ndc else "orbit"
+        kind = natural
     if kind == "spiral":
         return spiral_path(poses, num_frames)
     if kind == "orbit":

@@ -367,6 +367,25 @@ def schedule_steps(config: "Config") -> ScheduleSteps:
     return ScheduleSteps(**lengths)
 
 
+class SettingWarning(UserWarning):
+    """A setting a run accepts but cannot carry out in full (`setting_warnings`)."""
+
+
+def setting_warnings(config: "Config") -> list[str]:
+    """What `config` asks for that its run cannot do in full (a warning each, not an error: the
+    run is still a valid one)."""
+    found = []
+    if config.model.field == "grid":
+        reveal = schedule_steps(config).coarse_to_fine
+        if reveal > config.train.max_steps:
+            found.append(
+                f"grid.coarse_to_fine_steps = {reveal} is longer than the run (train.max_steps = "
+                f"{config.train.max_steps}): the finest levels are never fully revealed; give "
+                "grid.coarse_to_fine_fraction (a fraction of the run) instead"
+            )
+    return found
+
+
 def validate(config: "Config") -> None:
     """Raises `ConfigError` naming every setting whose value no run can use."""
     problems = [

@@ -323,7 +323,7 @@ class ColourMixture(eqx.Module):
 
     def quantile(self, level: ScalarLike) -> Float[Array, "*batch channels"]:
         """Per-channel quantile at `level` in (0, 1) (`0.5`: the median)."""
-        level = _check_level(level)
+        level = _check_level(level, dtype=self.location.dtype)
 
         def one_ray(coefficients, location, scale):
             return jax.vmap(channel_quantile, in_axes=(None, None, 1, 1))(
@@ -340,7 +340,7 @@ class ColourMixture(eqx.Module):
     ) -> tuple[Float[Array, "*batch channels"], Float[Array, "*batch channels"]]:
         """The central interval of each channel that holds `mass` in (0, 1): from the
         `(1 - mass) / 2` quantile to the `(1 + mass) / 2` quantile."""
-        mass = _check_level(mass)
+        mass = _check_level(mass, dtype=self.location.dtype)
         lower, upper = self.quantiles((0.5 * (1.0 - mass), 0.5 * (1.0 + mass)))
         return lower, upper
 
@@ -365,7 +365,7 @@ class ColourMixture(eqx.Module):
 
     def with_temperature(self, temperature: ScalarLike) -> "ColourMixture":
         """The same mixture with every scale multiplied by `temperature` (> 0)."""
-        return ColourMixture(self.coefficients, self.location, self.scale * _check_temperature(temperature))
+        return ColourMixture(self.coefficients, self.location, _scaled(self.scale, temperature))
 
 
 class TerminationDistribution(eqx.Module):
@@ -423,7 +423,7 @@ class TerminationDistribution(eqx.Module):
     def quantile(self, level: ScalarLike) -> Float[Array, "*batch"]:
         """The `level` quantile of the termination distance (`depth_quantile`, by bisection
         bracketed by the ray's first and last edge)."""
-        level = _check_level(level)
+        level = _check_level(level, dtype=self.weights.dtype)
         return self._per_ray(lambda weights, t_edges: depth_quantile(weights, t_edges, level))
 
     def median(self) -> Float[Array, "*batch"]:
@@ -431,7 +431,7 @@ class TerminationDistribution(eqx.Module):
 
     def interval(self, mass: ScalarLike) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
         """The central interval that holds `mass` of the termination distance."""
-        mass = _check_level(mass)
+        mass = _check_level(mass, dtype=self.weights.dtype)
         lower, upper = self.quantiles((0.5 * (1.0 - mass), 0.5 * (1.0 + mass)))
         return lower, upper
 
@@ -461,17 +461,38 @@ def _checked(value, ok, message: str):
     return value
 
 
-def _in_unit_interval(xp, x):
-    return (x > 0) & (x < 1)
+def _in_unit_interval(dtype):
+    """The check that a level lies in (0, 1), and still does once cast to `dtype` (1e-50 is 0
+    in float32, and 1 - 1e-9 is 1)."""
+
+    def ok(xp, x):
+        inside = (x > 0) & (x < 1)
+        cast = xp.asarray(xp.where(inside, x, 0.5), dtype)
+        return inside & (cast > 0) & (cast < 1)
+
+    return ok
 
 
-def _finite_positive(xp, x):
-    return xp.isfinite(x) & (x > 0)
+def _finite_positive(dtype):
+    """The check that a number is finite and positive, and still is once cast to `dtype`."""
+
+    def ok(xp, x):
+        good = xp.isfinite(x) & (x > 0)
+        cast = xp.asarray(xp.where(good & (xp.abs(x) < xp.finfo(dtype).max), x, 1.0), dtype)
+        return good & (xp.abs(x) < xp.finfo(dtype).max) & (cast > 0)
+
+    return ok
 
 
-def _check_level(level: ScalarLike, name: str = "a quantile level or interval mass"):
-    """`level`, checked to lie in (0, 1) (see `_checked`)."""
-    return _checked(_scalar(level, name), _in_unit_interval, f"{name} must lie in (0, 1)")
+def _level_message(name: str, dtype) -> str:
+    return f"{name} must lie in (0, 1), also as a {jnp.dtype(dtype).name}"
+
+
+def _check_level(level: ScalarLike, name: str = "a quantile level or interval mass", dtype=None):
+    """`level`, checked to lie in (0, 1) in float64 and in `dtype` (default: JAX's float, the
+    one the distributions compute in) (see `_checked`)."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return _checked(_scalar(level, name), _in_unit_interval(dtype), _level_message(name, dtype))
 
 
 def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
@@ -479,17 +500,41 @@ def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
     if isinstance(levels, Sequence) and not isinstance(levels, str):
         if not levels:
             raise ValueError("quantile levels must not be empty")
-        return jnp.stack([jnp.asarray(_check_level(level), dtype) for level in levels])
+        return jnp.stack([jnp.asarray(_check_level(level, dtype=dtype), dtype) for level in levels])
     if not isinstance(levels, np.ndarray | jax.Array) or np.ndim(levels) != 1 or np.shape(levels)[0] == 0:
         raise ValueError(f"quantile levels must be a non-empty sequence or 1-d array, got {levels!r}")
-    message = "a quantile level or interval mass must lie in (0, 1)"
-    return jnp.asarray(_checked(levels, _in_unit_interval, message), dtype)
+    message = _level_message("a quantile level or interval mass", dtype)
+    return jnp.asarray(_checked(levels, _in_unit_interval(dtype), message), dtype)
 
 
-def _check_temperature(temperature: ScalarLike):
-    """`temperature`, checked to be finite and positive (see `_checked`)."""
+_TEMPERATURE_MESSAGE = "temperature must be a finite positive number"
+
+
+def _check_temperature(temperature: ScalarLike, dtype=None):
+    """`temperature`, checked to be finite and positive, also in `dtype` (default: JAX's
+    float) (see `_checked`)."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
     temperature = _scalar(temperature, "temperature")
-    return _checked(temperature, _finite_positive, "temperature must be a finite positive number")
+    return _checked(temperature, _finite_positive(dtype), _TEMPERATURE_MESSAGE)
+
+
+def _scaled(
+    scale: Float[Array, "*batch num_samples channels"], temperature: ScalarLike
+) -> Float[Array, "*batch num_samples channels"]:
+    """`scale * temperature`, checked to stay finite and positive where `scale` is (a huge or
+    tiny temperature may overflow or underflow the product)."""
+    scaled = scale * _check_temperature(temperature, scale.dtype)
+    message = f"{_TEMPERATURE_MESSAGE} whose product with every scale is too"
+
+    def ok(xp, pair):
+        before, after = pair
+        return ~((before > 0) & xp.isfinite(before)) | (xp.isfinite(after) & (after > 0))
+
+    if _is_traced((scale, scaled)):
+        return eqx.error_if(scaled, ~jnp.all(ok(jnp, (scale, scaled))), message)
+    if not np.all(ok(np, (np.asarray(scale), np.asarray(scaled)))):
+        raise ValueError(f"{message}, got {float(np.asarray(temperature))}")
+    return scaled
 
 
 class Predictive(eqx.Module):
@@ -511,13 +556,20 @@ class Predictive(eqx.Module):
 
 
 def _check_bounds(rays: RayBundle) -> RayBundle:
-    """`rays`, checked to have `near <= far` (the sampling interval would be reversed)."""
-    message = "rays must have near <= far"
+    """`rays`, checked to have finite bounds with `near <= far` (the sampling interval would
+    otherwise be reversed or unbounded)."""
+    message = "rays must have finite bounds with near <= far"
+
+    def bad(xp, near, far):
+        return ~(xp.isfinite(near) & xp.isfinite(far) & (near <= far))
+
     if _is_traced((rays.near, rays.far)):
-        return eqx.tree_at(lambda r: r.near, rays, eqx.error_if(rays.near, jnp.any(rays.near > rays.far), message))
-    reversed_rays = int(np.sum(np.asarray(rays.near) > np.asarray(rays.far)))
-    if reversed_rays:
-        raise ValueError(f"{message}: {reversed_rays} of {math.prod(rays.batch_shape)} rays have near > far")
+        flagged = eqx.error_if(rays.near, jnp.any(bad(jnp, rays.near, rays.far)), message)
+        return eqx.tree_at(lambda r: r.near, rays, flagged)
+    near, far = np.asarray(rays.near), np.asarray(rays.far)
+    count = int(np.sum(bad(np, near, far)))
+    if count:
+        raise ValueError(f"{message}: {count} of {math.prod(rays.batch_shape)} rays do not")
     return rays
 
 
@@ -532,7 +584,7 @@ def colour_mixture(level: LevelOutputs, temperature: ScalarLike = 1.0) -> Colour
     count = level.weights.shape[-1]
     flat = level.weights.reshape(-1, count)
     coefficients = jax.vmap(mixing_coefficients)(flat).reshape(level.weights.shape)
-    return ColourMixture(coefficients, level.field.rgb, beta * _check_temperature(temperature))
+    return ColourMixture(coefficients, level.field.rgb, _scaled(beta, temperature))
 
 
 def predictive(
@@ -622,7 +674,7 @@ DEFAULT_MASSES = (0.5, 0.8, 0.9, 0.95)
 
 def summarise(
     prediction: Predictive,
-    masses: tuple[float, ...] = DEFAULT_MASSES,
+    masses: Sequence[ScalarLike] = DEFAULT_MASSES,
     targets: Float[Array, "*batch channels"] | None = None,
     *,
     with_mode: bool = False,
@@ -631,8 +683,10 @@ def summarise(
     levels), with the log density of `targets` if given and, with `with_mode`, the mode of
     each ray's joint colour density (a search per ray, which costs about as much as the
     quantiles)."""
-    for mass in masses:
-        _check_level(mass)
+    if isinstance(masses, str) or not isinstance(masses, Sequence) or not masses:
+        raise ValueError(f"masses must be a non-empty sequence of interval masses, got {masses!r}")
+    dtype = prediction.colour.location.dtype
+    masses = tuple(float(_check_level(mass, "an interval mass", dtype=dtype)) for mass in masses)
     colour, depth = prediction.colour, prediction.depth
     # One batched solve for every level: the median, then each interval's two ends.
     levels = (0.5, *(0.5 * (1.0 - mass) for mass in masses), *(0.5 * (1.0 + mass) for mass in masses))
@@ -640,7 +694,7 @@ def summarise(
     depth_quantiles = depth.quantiles(levels)
     count = len(masses)
     return PredictiveSummary(
-        masses=tuple(float(mass) for mass in masses),
+        masses=masses,
         colour_mean=colour.mean(),
         colour_median=colour_quantiles[0],
         colour_std=colour.std(),

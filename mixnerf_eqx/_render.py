@@ -25,7 +25,9 @@ def blend_weights(density: PerSample, t_edges: Edges, step_scale: Float[Array, "
 
     The weights, which sum to at most one.
     """
-    deltas = (t_edges[1:] - t_edges[:-1]) * step_scale
+    # Edges out of order by a rounding (a ray whose near and far bounds are equal or nearly so)
+    # are an interval of no length, not a negative weight.
+    deltas = jnp.maximum(t_edges[1:] - t_edges[:-1], 0.0) * step_scale
     density_delta = density * deltas
     alpha = -jnp.expm1(-density_delta)
     # Transmittance before sample i: exp of minus the optical depth of samples 0..i-1.

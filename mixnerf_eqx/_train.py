@@ -12,6 +12,7 @@ import json
 import os
 import shutil
 import time
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from ._checkpoint import (
     remove_stale_staging,
     save_checkpoint,
 )
-from ._config import Config, ConfigError, config_to_dict
+from ._config import Config, ConfigError, SettingWarning, config_to_dict, setting_warnings
 from ._evaluate import Evaluation, Rendered, evaluate
 from ._interrupt import deferred_interrupts, raise_if_interrupted
 from ._lock import LOCK_NAME, hold_folder
@@ -288,6 +289,8 @@ def fit(
 
     A `TrainResult` with the final test metrics (also written to `metrics.json`).
     """
+    for message in setting_warnings(config):
+        warnings.warn(message, SettingWarning, stacklevel=2)
     run_dir = Path(config.train.run_dir)
     created = _prepare_run_dir(run_dir)
     # One writer per run folder: a second `fit` on it fails here, before touching it (and never

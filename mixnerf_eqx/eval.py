@@ -81,8 +81,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--temperature",
         type=float,
-        default=1.0,
-        help="with --uncertainty: multiply every beta by this factor (a post-hoc calibration)",
+        default=None,
+        help="with --uncertainty: multiply every beta by this factor (a post-hoc calibration; default 1)",
     )
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
     add_typecheck_argument(parser)
@@ -237,6 +237,10 @@ def _uncertainty(restored: Run, views, chunk: int, out: Path, *, temperature: fl
 def _check_arguments(args: argparse.Namespace) -> None:
     if args.chunk is not None and args.chunk < 1:
         raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
+    if args.temperature is not None and not args.uncertainty:
+        raise ConfigError("--temperature scales the predictive distribution: it needs --uncertainty")
+    if args.temperature is None:
+        args.temperature = 1.0
     if not (math.isfinite(args.temperature) and args.temperature > 0):
         raise ConfigError(f"--temperature must be a finite positive number, got {args.temperature}")
     if args.max_views < 0:

@@ -91,6 +91,18 @@ def test_the_path_follows_the_kind_of_scene(tiny_scene):
         camera_path(tiny_scene, "orbit", 0)
 
 
+def test_a_path_for_the_other_kind_of_scene_is_drawn_with_a_warning(tiny_scene):
+    forward = dataclasses.replace(tiny_scene, train=dataclasses.replace(tiny_scene.train, ndc=True))
+    with pytest.warns(mx.SettingWarning, match="a spiral through a 360-degree scene"):
+        spiral = camera_path(tiny_scene, "spiral", 8)
+    with pytest.warns(mx.SettingWarning, match="an orbit through a forward-facing scene"):
+        orbit = camera_path(forward, "orbit", 8)
+    assert spiral.shape == orbit.shape == (8, 3, 4)
+    # The natural paths, asked for by name or by auto, draw no warning (warnings are errors here).
+    camera_path(tiny_scene, "orbit", 8)
+    camera_path(forward, "spiral", 8)
+
+
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory):
     # A small grid for the skipping render, its threshold from the config (no calibration).

@@ -105,6 +105,37 @@ def test_eval_refuses_a_temperature_that_is_not_finite_and_positive(value, tmp_p
     assert "--temperature must be a finite positive number" in process.stderr
 
 
+def test_eval_refuses_a_temperature_without_uncertainty(tmp_path):
+    process = subprocess.run(
+        [sys.executable, "-m", "mixnerf_eqx.eval", str(tmp_path), "--temperature", "2"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert process.returncode == 2
+    assert "--temperature scales the predictive distribution: it needs --uncertainty" in process.stderr
+
+
+def test_a_reveal_longer_than_the_run_is_a_warning_and_a_fraction_is_not(tiny_scene, tmp_path):
+    from helpers import TINY_OVERRIDES
+
+    from mixnerf_eqx._config import replace_setting
+
+    grid = [*TINY_OVERRIDES, "model.field=\"grid\"", "grid.levels=2", "grid.min_resolution=8", "grid.max_resolution=16"]
+    long = mx.load_config("configs/builtin.toml", [*grid, "train.max_steps=3", "grid.coarse_to_fine_steps=10"])
+    (message,) = mx.setting_warnings(long)
+    assert message.startswith("grid.coarse_to_fine_steps = 10 is longer than the run (train.max_steps = 3)")
+    assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_fraction=1.0)) == []
+    assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_steps=3)) == []
+    # The MLP has no levels to reveal: the grid's keys say nothing to it.
+    assert mx.setting_warnings(mx.load_config("configs/builtin.toml", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"])) == []
+    # A run with it trains, and says so once at its start.
+    long = replace_setting(long, "train", run_dir=str(tmp_path / "run"))
+    with pytest.warns(mx.SettingWarning, match="the finest levels are never fully revealed"):
+        result = mx.fit(long, dataset=tiny_scene, progress=False, write_renders=False)
+    assert int(result.state.step) == 3
+
+
 def test_the_public_api_keeps_its_names():
     assert mx.FolderBusyError is not None and callable(mx.hold_folder)
 
@@ -145,8 +176,11 @@ def test_zero_rays_give_empty_summaries_with_the_shapes_of_one(tiny_model):
 
 
 def test_rays_with_near_beyond_far_are_refused(tiny_model):
-    with pytest.raises(ValueError, match="near <= far: 3 of 3 rays"):
+    with pytest.raises(ValueError, match="finite bounds with near <= far: 3 of 3 rays do not"):
         mx.predictive(tiny_model, _rays(3, near=6.0, far=2.0))
+    for near, far in ((math.nan, 2.0), (2.0, math.inf), (-math.inf, 2.0)):
+        with pytest.raises(ValueError, match="finite bounds with near <= far: 3 of 3 rays do not"):
+            mx.predictive(tiny_model, _rays(3, near=near, far=far))
     with pytest.raises(Exception, match="near <= far"):
         mx.predict_rays(tiny_model, _rays(3, near=6.0, far=2.0), chunk=4)
 

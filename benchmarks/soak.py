@@ -1,0 +1,226 @@
+"""Soak test of resuming: train a tiny run, stop it at random moments (Ctrl-C or `kill -9`)
+and start it again, many times, then check that it ended exactly where an uninterrupted run
+ends.
+
+    python benchmarks/soak.py                       # 50 stops, about 10 minutes on 2 CPU cores
+    python benchmarks/soak.py --rounds 5 --steps 120  # a quick look
+
+Every start is the README's command, `python -m mixnerf_eqx.train`, in a fresh process on the
+same run folder (it resumes from the newest checkpoint). Each stop comes at a uniformly random
+time after the start, so stops land in the imports, the scene's generation, compilation,
+training steps, checkpoint writes, log writes and the final evaluation alike; the signal is
+SIGINT or SIGKILL with equal odds. After `--rounds` stops the run is started once more and left
+to finish. Checked against an uninterrupted run of the same config:
+
+- every parameter of the final checkpoint equal bit for bit, and the optimiser state too;
+- the test metrics equal;
+- `train_log.jsonl` holds one entry per logged step, the same steps as the uninterrupted log,
+  with the same losses;
+- every stopped process ended with status 130 (Ctrl-C) or by the kill, never with a
+  traceback, and no staging folder or partial file is left.
+
+The figures (stops by signal and by what the run was doing, steps redone after kills, time)
+go to `results/soak_cpu.json`, and `docs/reliability.md` quotes them.
+"""
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import equinox as eqx
+import harness
+import jax
+import numpy as np
+
+import mixnerf_eqx as mx
+
+CONFIG = "configs/builtin.toml"
+# The tests' tiny model (tests/helpers.py, TINY_OVERRIDES), with a checkpoint every 10 steps and
+# a periodic evaluation, so that stops also land in checkpoint writes and in renders.
+TINY = [
+    "data.resolution=32",
+    "data.num_train_views=4",
+    "data.num_test_views=3",
+    "model.width=32",
+    "model.depth=2",
+    "model.skip_layer=1",
+    "model.view_width=16",
+    "model.max_deg=8",
+    "model.num_coarse_samples=16",
+    "model.num_fine_samples=16",
+    "optim.lr_init=5e-3",
+    "optim.lr_final=5e-4",
+    "optim.warmup_steps=20",
+    "loss.lambda_colour_steps=20",
+    "train.batch_size=256",
+    "train.anneal_steps=20",
+    "train.checkpoint_every=10",
+]
+
+
+def train_command(run_dir: Path, steps: int, eval_every: int) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "mixnerf_eqx.train",
+        "--no-progress",
+        "--config",
+        CONFIG,
+        *TINY,
+        f"train.max_steps={steps}",
+        f"train.eval_every={eval_every}",
+        f"train.run_dir={json.dumps(str(run_dir))}",
+    ]
+
+
+def environment(cache: Path) -> dict[str, str]:
+    # One compilation cache for every start, so that a restart costs seconds, not a compile.
+    return {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache), "PYTHONUNBUFFERED": "1"}
+
+
+def log_steps(run_dir: Path) -> list[dict]:
+    path = run_dir / "train_log.jsonl"
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def what_it_was_doing(output: str) -> str:
+    """A coarse phase from the process's own output: before training, training, evaluating."""
+    if "test" in output and "PSNR" in output:
+        return "final evaluation"
+    if "step" in output:
+        return "training"
+    return "start-up"
+
+
+def state_leaves(run_dir: Path) -> list[np.ndarray]:
+    run = mx.restore_run(run_dir)
+    return [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(eqx.filter(run.state, eqx.is_array))]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rounds", type=int, default=50, help="stops before the run is let finish")
+    parser.add_argument("--steps", type=int, default=400, help="train.max_steps of the run")
+    parser.add_argument("--eval-every", type=int, default=100, help="train.eval_every of the run")
+    parser.add_argument("--max-wait", type=float, default=None, help="latest stop, s after a start (default: measured)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the stop times and signals")
+    parser.add_argument("--out", default=None, help="result file (default results/soak_<backend>.json)")
+    args = parser.parse_args()
+    rng = random.Random(args.seed)
+    scratch = Path(tempfile.mkdtemp(prefix="soak-"))
+    env = environment(scratch / "xla-cache")
+
+    reference = scratch / "uninterrupted"
+    started = time.perf_counter()
+    done = subprocess.run(train_command(reference, args.steps, args.eval_every), env=env, capture_output=True, text=True)
+    reference_s = time.perf_counter() - started
+    if done.returncode != 0:
+        raise SystemExit(f"the uninterrupted run failed:\n{done.stderr[-3000:]}")
+    print(f"uninterrupted run: {reference_s:.1f} s", flush=True)
+    # Stops up to the whole run's length after a start, so that some land in the final
+    # evaluation and some after a run that resumed near its end.
+    max_wait = args.max_wait if args.max_wait is not None else reference_s
+
+    soaked = scratch / "soaked"
+    rounds = []
+    soak_started = time.perf_counter()
+    for index in range(args.rounds):
+        before = log_steps(soaked)
+        wait = rng.uniform(0.2, max_wait)
+        which = rng.choice([signal.SIGINT, signal.SIGKILL])
+        process = subprocess.Popen(
+            train_command(soaked, args.steps, args.eval_every),
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            process.wait(timeout=wait)
+            finished_by_itself = True
+        except subprocess.TimeoutExpired:
+            finished_by_itself = False
+            process.send_signal(which)
+        stdout, stderr = process.communicate(timeout=600)
+        after = log_steps(soaked)
+        row = {
+            "round": index,
+            "wait_s": round(wait, 2),
+            "signal": None if finished_by_itself else signal.Signals(which).name,
+            "status": process.returncode,
+            "phase": "finished" if finished_by_itself else what_it_was_doing(stdout),
+            "last_logged_step_before": before[-1]["step"] if before else None,
+            "last_logged_step_after": after[-1]["step"] if after else None,
+            "traceback": "Traceback" in stderr,
+        }
+        rounds.append(row)
+        print(json.dumps(row), flush=True)
+        if row["traceback"]:
+            print(stderr[-3000:], file=sys.stderr)
+        if finished_by_itself:
+            # The run finished before this stop: train a fresh folder from scratch for the rest.
+            break
+    final = subprocess.run(train_command(soaked, args.steps, args.eval_every), env=env, capture_output=True, text=True)
+    soak_s = time.perf_counter() - soak_started
+    if final.returncode != 0:
+        raise SystemExit(f"the final start failed:\n{final.stderr[-3000:]}")
+
+    want, got = state_leaves(reference), state_leaves(soaked)
+    equal_leaves = sum(a.shape == b.shape and np.array_equal(a, b) for a, b in zip(want, got, strict=True))
+    want_log, got_log = log_steps(reference), log_steps(soaked)
+    got_steps = [entry["step"] for entry in got_log]
+    want_metrics = json.loads((reference / "metrics.json").read_text())["test"]
+    got_metrics = json.loads((soaked / "metrics.json").read_text())["test"]
+    leftovers = sorted(
+        str(path.relative_to(soaked)) for path in soaked.rglob("*") if "partial" in path.name or "staging" in path.name
+    )
+
+    def losses(log):
+        return [(entry["step"], entry.get("loss")) for entry in log if "loss" in entry]
+
+    expected_status = {130, -signal.SIGKILL}
+    checks = {
+        "parameters and optimiser state bit-identical": equal_leaves == len(want),
+        "test metrics equal": want_metrics == got_metrics,
+        "one log entry per logged step": len(got_steps) == len(set(got_steps)) and got_steps == sorted(got_steps),
+        "same logged steps and losses as the uninterrupted run": losses(want_log) == losses(got_log),
+        "every stop ended with 130 or by the kill": all(
+            row["status"] in expected_status for row in rounds if row["signal"] is not None
+        ),
+        "no traceback": not any(row["traceback"] for row in rounds),
+        "no staging or partial files left": not leftovers,
+    }
+    stops = [row for row in rounds if row["signal"] is not None]
+    summary = {
+        "stops": len(stops),
+        "SIGINT": sum(row["signal"] == "SIGINT" for row in stops),
+        "SIGKILL": sum(row["signal"] == "SIGKILL" for row in stops),
+        "by_phase": {phase: sum(row["phase"] == phase for row in stops) for phase in sorted({r["phase"] for r in stops})},
+        "finished_before_a_stop": any(row["signal"] is None for row in rounds),
+        "uninterrupted_s": round(reference_s, 1),
+        "soaked_s": round(soak_s, 1),
+        "leaves": len(want),
+        "equal_leaves": equal_leaves,
+        "log_entries": len(got_log),
+        "leftovers": leftovers,
+    }
+    print()
+    harness.print_table(("check", "holds"), [(name, "yes" if ok else "NO") for name, ok in checks.items()])
+    print(json.dumps(summary, indent=2))
+    out = Path(args.out) if args.out else harness.RESULTS / f"soak_{harness.platform_tag()}.json"
+    harness.write_json(out, {"steps": args.steps, "rounds": args.rounds, "checks": checks, "summary": summary, "stops": rounds})
+    if not all(checks.values()):
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()
