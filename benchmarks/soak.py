@@ -2,8 +2,8 @@
 and start it again, many times, then check that it ended exactly where an uninterrupted run
 ends.
 
-    python benchmarks/soak.py                       # 50 stops, about 10 minutes on 2 CPU cores
-    python benchmarks/soak.py --rounds 5 --steps 120  # a quick look
+    python benchmarks/soak.py                         # 50 stops, about 15 minutes on 2 CPU cores
+    python benchmarks/soak.py --rounds 6 --steps 600  # a quick look
 
 Every start is the README's command, `python -m mixnerf_eqx.train`, in a fresh process on the
 same run folder (it resumes from the newest checkpoint). Each stop comes at a uniformly random
@@ -25,6 +25,7 @@ go to `results/soak_cpu.json`, and `docs/reliability.md` quotes them.
 
 import argparse
 import json
+import math
 import os
 import random
 import signal
@@ -92,43 +93,73 @@ def log_steps(run_dir: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def what_it_was_doing(output: str) -> str:
-    """A coarse phase from the process's own output: before training, training, evaluating."""
-    if "test" in output and "PSNR" in output:
-        return "final evaluation"
-    if "step" in output:
-        return "training"
-    return "start-up"
+def what_it_was_doing(before: list[dict], after: list[dict]) -> str:
+    """Whether a stopped start had got to training: `"training"` if it logged a step (the log is
+    read right after the stop, before the next start drops what a kill left unsaved), else
+    `"start-up"` (imports, the scene, compilation, the first steps)."""
+    return "training" if len(after) > len(before) else "start-up"
 
 
 def state_leaves(run_dir: Path) -> list[np.ndarray]:
+    """Every array of the run's final state (parameters, optimiser state, key, step)."""
     run = mx.restore_run(run_dir)
-    return [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(eqx.filter(run.state, eqx.is_array))]
+    leaves = jax.tree_util.tree_leaves(eqx.filter(run.state, eqx.is_array))
+    return [np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x) for x in leaves]
+
+
+def stop_window(start_s: float, steps_per_s: float, steps: int, rounds: int) -> float:
+    """The latest stop, in seconds after a start, such that `rounds` stops at uniform times in
+    `[0, start_s + window]` are expected to train about 70% of `steps` in all (a stop after
+    the start-up of `start_s` keeps about `steps_per_s` steps per second past it): the run
+    lasts through every round, and a third or so of the stops land in training."""
+    per_round = 0.7 * steps / rounds / steps_per_s  # seconds of training expected per round
+    # E[max(0, u - start_s)] for u ~ U(0, start_s + w) is w^2 / (2 (start_s + w)).
+    return per_round + math.sqrt(per_round**2 + 2 * per_round * start_s)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=50, help="stops before the run is let finish")
-    parser.add_argument("--steps", type=int, default=400, help="train.max_steps of the run")
-    parser.add_argument("--eval-every", type=int, default=100, help="train.eval_every of the run")
+    parser.add_argument("--steps", type=int, default=3000, help="train.max_steps of the run")
+    parser.add_argument("--eval-every", type=int, default=500, help="train.eval_every of the run")
     parser.add_argument("--max-wait", type=float, default=None, help="latest stop, s after a start (default: measured)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the stop times and signals")
     parser.add_argument("--out", default=None, help="result file (default results/soak_<backend>.json)")
     args = parser.parse_args()
+    # A process started in the background of a shell ignores SIGINT, and so would every run it
+    # starts: with a handler of its own here, the runs start with the default disposition, as
+    # from a terminal.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     rng = random.Random(args.seed)
     scratch = Path(tempfile.mkdtemp(prefix="soak-"))
     env = environment(scratch / "xla-cache")
 
     reference = scratch / "uninterrupted"
+    # A first run only fills the compilation cache, so that the reference's start-up is what
+    # every restart sees.
+    subprocess.run(train_command(scratch / "warm-up", 20, 0), env=env, capture_output=True, check=True)
     started = time.perf_counter()
-    done = subprocess.run(train_command(reference, args.steps, args.eval_every), env=env, capture_output=True, text=True)
+    process = subprocess.Popen(
+        train_command(reference, args.steps, args.eval_every), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    first_entry_s = None
+    while process.poll() is None:
+        if first_entry_s is None and log_steps(reference):
+            first_entry_s = time.perf_counter() - started
+        time.sleep(0.05)
     reference_s = time.perf_counter() - started
-    if done.returncode != 0:
-        raise SystemExit(f"the uninterrupted run failed:\n{done.stderr[-3000:]}")
-    print(f"uninterrupted run: {reference_s:.1f} s", flush=True)
-    # Stops up to the whole run's length after a start, so that some land in the final
-    # evaluation and some after a run that resumed near its end.
-    max_wait = args.max_wait if args.max_wait is not None else reference_s
+    _, stderr = process.communicate()
+    if process.returncode != 0:
+        raise SystemExit(f"the uninterrupted run failed:\n{stderr[-3000:]}")
+    rates = [entry["steps_per_s"] for entry in log_steps(reference) if entry.get("steps_per_s")]
+    steps_per_s = sorted(rates)[len(rates) // 2]
+    start_s = first_entry_s - 10 / steps_per_s  # the first entry is logged at step 10
+    max_wait = args.max_wait if args.max_wait is not None else start_s + stop_window(start_s, steps_per_s, args.steps, args.rounds)
+    print(
+        f"uninterrupted run: {reference_s:.1f} s, start-up {start_s:.1f} s, {steps_per_s:.0f} steps/s; "
+        f"stops at uniform times up to {max_wait:.1f} s after each start",
+        flush=True,
+    )
 
     soaked = scratch / "soaked"
     rounds = []
@@ -157,7 +188,7 @@ def main() -> None:
             "wait_s": round(wait, 2),
             "signal": None if finished_by_itself else signal.Signals(which).name,
             "status": process.returncode,
-            "phase": "finished" if finished_by_itself else what_it_was_doing(stdout),
+            "phase": "finished" if finished_by_itself else what_it_was_doing(before, after),
             "last_logged_step_before": before[-1]["step"] if before else None,
             "last_logged_step_after": after[-1]["step"] if after else None,
             "traceback": "Traceback" in stderr,
@@ -177,7 +208,6 @@ def main() -> None:
     want, got = state_leaves(reference), state_leaves(soaked)
     equal_leaves = sum(a.shape == b.shape and np.array_equal(a, b) for a, b in zip(want, got, strict=True))
     want_log, got_log = log_steps(reference), log_steps(soaked)
-    got_steps = [entry["step"] for entry in got_log]
     want_metrics = json.loads((reference / "metrics.json").read_text())["test"]
     got_metrics = json.loads((soaked / "metrics.json").read_text())["test"]
     leftovers = sorted(
@@ -185,14 +215,22 @@ def main() -> None:
     )
 
     def losses(log):
-        return [(entry["step"], entry.get("loss")) for entry in log if "loss" in entry]
+        return [(entry["step"], entry["loss"]) for entry in log if "loss" in entry]
+
+    def evaluations(log):
+        return [(entry["step"], entry["eval"]) for entry in log if "eval" in entry]
+
+    def once_each(steps):
+        return len(steps) == len(set(steps)) and steps == sorted(steps)
 
     expected_status = {130, -signal.SIGKILL}
     checks = {
         "parameters and optimiser state bit-identical": equal_leaves == len(want),
         "test metrics equal": want_metrics == got_metrics,
-        "one log entry per logged step": len(got_steps) == len(set(got_steps)) and got_steps == sorted(got_steps),
-        "same logged steps and losses as the uninterrupted run": losses(want_log) == losses(got_log),
+        "one log entry per logged step and evaluation": once_each([step for step, _ in losses(got_log)])
+        and once_each([step for step, _ in evaluations(got_log)]),
+        "same logged steps, losses and evaluations as the uninterrupted run": losses(want_log) == losses(got_log)
+        and evaluations(want_log) == evaluations(got_log),
         "every stop ended with 130 or by the kill": all(
             row["status"] in expected_status for row in rounds if row["signal"] is not None
         ),
@@ -207,6 +245,9 @@ def main() -> None:
         "by_phase": {phase: sum(row["phase"] == phase for row in stops) for phase in sorted({r["phase"] for r in stops})},
         "finished_before_a_stop": any(row["signal"] is None for row in rounds),
         "uninterrupted_s": round(reference_s, 1),
+        "start_up_s": round(start_s, 1),
+        "steps_per_s": round(steps_per_s, 1),
+        "latest_stop_s": round(max_wait, 1),
         "soaked_s": round(soak_s, 1),
         "leaves": len(want),
         "equal_leaves": equal_leaves,
