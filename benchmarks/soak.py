@@ -2,7 +2,7 @@
 and start it again, many times, then check that it ended exactly where an uninterrupted run
 ends.
 
-    python benchmarks/soak.py                         # 50 stops, about 15 minutes on 2 CPU cores
+    python benchmarks/soak.py                         # 50 stops, about 20 minutes on 2 CPU cores
     python benchmarks/soak.py --rounds 6 --steps 600  # a quick look
 
 Every start is the README's command, `python -m mixnerf_eqx.train`, in a fresh process on the
@@ -93,10 +93,20 @@ def log_steps(run_dir: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def what_it_was_doing(before: list[dict], after: list[dict]) -> str:
-    """Whether a stopped start had got to training: `"training"` if it logged a step (the log is
-    read right after the stop, before the next start drops what a kill left unsaved), else
-    `"start-up"` (imports, the scene, compilation, the first steps)."""
+def in_python_imports(status: int, stderr: str) -> bool:
+    """A Ctrl-C that came while Python was still importing the package (the first seconds): no
+    code of the run has started, and Python ends with its own KeyboardInterrupt traceback and
+    the default SIGINT exit."""
+    lines = stderr.strip().splitlines()
+    return status == -signal.SIGINT and bool(lines) and lines[-1] == "KeyboardInterrupt" and "importlib._bootstrap" in stderr
+
+
+def what_it_was_doing(before: list[dict], after: list[dict], status: int, stderr: str) -> str:
+    """Where a start was stopped: `"imports"` (see `in_python_imports`), `"training"` if it
+    logged a step (the log is read right after the stop, before the next start drops what a
+    kill left unsaved), else `"start-up"` (the scene, compilation, the first steps)."""
+    if in_python_imports(status, stderr):
+        return "imports"
     return "training" if len(after) > len(before) else "start-up"
 
 
@@ -120,7 +130,7 @@ def stop_window(start_s: float, steps_per_s: float, steps: int, rounds: int) -> 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=50, help="stops before the run is let finish")
-    parser.add_argument("--steps", type=int, default=3000, help="train.max_steps of the run")
+    parser.add_argument("--steps", type=int, default=5000, help="train.max_steps of the run")
     parser.add_argument("--eval-every", type=int, default=500, help="train.eval_every of the run")
     parser.add_argument("--max-wait", type=float, default=None, help="latest stop, s after a start (default: measured)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the stop times and signals")
@@ -135,9 +145,18 @@ def main() -> None:
     env = environment(scratch / "xla-cache")
 
     reference = scratch / "uninterrupted"
-    # A first run only fills the compilation cache, so that the reference's start-up is what
-    # every restart sees.
-    subprocess.run(train_command(scratch / "warm-up", 20, 0), env=env, capture_output=True, check=True)
+    # A first start of the same run, stopped at its first log entry, only fills the compilation
+    # cache, so that the reference's start-up is what every restart sees.
+    warm_up = subprocess.Popen(
+        train_command(scratch / "warm-up", args.steps, args.eval_every),
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    while warm_up.poll() is None and not log_steps(scratch / "warm-up"):
+        time.sleep(0.05)
+    warm_up.kill()
+    warm_up.wait()
     started = time.perf_counter()
     process = subprocess.Popen(
         train_command(reference, args.steps, args.eval_every), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
@@ -188,10 +207,10 @@ def main() -> None:
             "wait_s": round(wait, 2),
             "signal": None if finished_by_itself else signal.Signals(which).name,
             "status": process.returncode,
-            "phase": "finished" if finished_by_itself else what_it_was_doing(before, after),
+            "phase": "finished" if finished_by_itself else what_it_was_doing(before, after, process.returncode, stderr),
             "last_logged_step_before": before[-1]["step"] if before else None,
             "last_logged_step_after": after[-1]["step"] if after else None,
-            "traceback": "Traceback" in stderr,
+            "traceback": "Traceback" in stderr and not in_python_imports(process.returncode, stderr),
         }
         rounds.append(row)
         print(json.dumps(row), flush=True)
@@ -231,10 +250,10 @@ def main() -> None:
         and once_each([step for step, _ in evaluations(got_log)]),
         "same logged steps, losses and evaluations as the uninterrupted run": losses(want_log) == losses(got_log)
         and evaluations(want_log) == evaluations(got_log),
-        "every stop ended with 130 or by the kill": all(
-            row["status"] in expected_status for row in rounds if row["signal"] is not None
+        "every stop ended with 130 or by the kill (or in Python's imports)": all(
+            row["status"] in expected_status or row["phase"] == "imports" for row in rounds if row["signal"] is not None
         ),
-        "no traceback": not any(row["traceback"] for row in rounds),
+        "no traceback (but Python's own, in its imports)": not any(row["traceback"] for row in rounds),
         "no staging or partial files left": not leftovers,
     }
     stops = [row for row in rounds if row["signal"] is not None]
