@@ -11,6 +11,7 @@ from pathlib import Path
 from ._cli import report_error
 from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from ._config import ConfigError, load_config, replace_setting
+from ._interrupt import deferred_interrupts
 from ._train import TrainingDiverged, fit
 from ._typecheck import add_typecheck_argument, typecheck_argument
 
@@ -88,8 +89,14 @@ def _train(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     use_compilation_cache(args)
-    with typecheck_argument(args):
-        return _train(args)
+    # From here on, Ctrl-C is recorded and acted on at the training loop's next safe point: in
+    # the set-up before it, Python's own KeyboardInterrupt could be raised inside a callback
+    # (JAX's garbage-collection hook) and be lost (docs/reliability.md, "Soak").
+    try:
+        with typecheck_argument(args), deferred_interrupts():
+            return _train(args)
+    except KeyboardInterrupt:
+        return 130
 
 
 if __name__ == "__main__":

@@ -93,6 +93,31 @@ def test_a_ctrl_c_anywhere_in_the_loop_resumes_to_the_uninterrupted_run(
     assert [entry["step"] for entry in map(json.loads, log_lines) if "loss" in entry] == [2, 4, 6, 8, 10]
 
 
+def test_a_ctrl_c_in_the_set_up_before_the_loop_stops_the_run(tiny_scene, tmp_path, monkeypatch):
+    """Soak finding: before the loop deferred interrupts, a Ctrl-C in the set-up could land in
+    JAX's garbage-collection callback, where Python drops the KeyboardInterrupt, and the run
+    trained to its end. Now `train` defers from its start: a Ctrl-C while the scene loads stops
+    the run at the loop's first safe point."""
+    from helpers import TINY_OVERRIDES
+
+    from mixnerf_eqx import _train
+    from mixnerf_eqx import train as train_cli
+
+    loaded = []
+
+    def load_interrupted(config):
+        signal.raise_signal(signal.SIGINT)  # a real Ctrl-C, while the scene loads
+        loaded.append(True)  # recorded, not raised here, in the middle of the set-up
+        return tiny_scene
+
+    monkeypatch.setattr(_train, "load_dataset", load_interrupted)
+    run_dir = tmp_path / "run"
+    code = train_cli.main(["--config", "configs/builtin.toml", *TINY_OVERRIDES, "--run-dir", str(run_dir), "--no-progress"])
+    assert code == 130 and loaded == [True]
+    steps = [json.loads(line)["step"] for line in (run_dir / "train_log.jsonl").read_text().splitlines()]
+    assert max(steps, default=0) < 150  # stopped long before train.max_steps
+
+
 def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatch, capsys):
     config = _with(tiny_config, "train", max_steps=2)
     fit_quietly(config, tiny_scene)
