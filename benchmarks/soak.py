@@ -102,11 +102,16 @@ def in_python_imports(status: int, stderr: str) -> bool:
 
 
 def what_it_was_doing(before: list[dict], after: list[dict], status: int, stderr: str) -> str:
-    """Where a start was stopped: `"imports"` (see `in_python_imports`), `"training"` if it
+    """Where a start was stopped: `"imports"` (see `in_python_imports`), `"shutdown"` (after
+    the run ended, as the interpreter shuts down), `"training"` if it
     logged a step (the log is read right after the stop, before the next start drops what a
     kill left unsaved), else `"start-up"` (the scene, compilation, the first steps)."""
     if in_python_imports(status, stderr):
         return "imports"
+    if status == -signal.SIGINT and "Traceback" not in stderr:
+        # Killed by SIGINT's default disposition, which Python restores only as it shuts down:
+        # the run had ended, its work done.
+        return "shutdown"
     return "training" if len(after) > len(before) else "start-up"
 
 
@@ -250,8 +255,10 @@ def main() -> None:
         and once_each([step for step, _ in evaluations(got_log)]),
         "same logged steps, losses and evaluations as the uninterrupted run": losses(want_log) == losses(got_log)
         and evaluations(want_log) == evaluations(got_log),
-        "every stop ended with 130 or by the kill (or in Python's imports)": all(
-            row["status"] in expected_status or row["phase"] == "imports" for row in rounds if row["signal"] is not None
+        "every stop ended with 130 or by the kill (or in Python's imports or shut-down)": all(
+            row["status"] in expected_status or row["phase"] in ("imports", "shutdown")
+            for row in rounds
+            if row["signal"] is not None
         ),
         "no traceback (but Python's own, in its imports)": not any(row["traceback"] for row in rounds),
         "no staging or partial files left": not leftovers,
