@@ -121,9 +121,7 @@ def plane_product(
     two, and the four corners of all three planes are added into the planes in one windowed
     scatter. The gradient with respect to `weights` is exact too.
     """
-    table = planes.reshape(-1, planes.shape[-1])
-    first, second, third = (_gathered_sum(table, indices[p], weights[p]) for p in range(3))
-    return first * second * third
+    return _plane_product_fwd(planes, indices, weights)[0]
 
 
 def _plane_product_fwd(planes, indices, weights):
