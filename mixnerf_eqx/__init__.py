@@ -6,7 +6,12 @@ annotated function and Module checks the shapes and dtypes of its arguments whil
 `JAXTYPING_DISABLE=1` turn the checks off: see `mixnerf_eqx._typecheck`.
 """
 
-import jaxtyping as _jaxtyping
+from ._interrupt import redeliver_dropped_interrupts as _redeliver_dropped_interrupts
+
+# Before JAX is imported: a Ctrl-C that lands in its garbage-collection callback is not lost.
+_redeliver_dropped_interrupts()
+
+import jaxtyping as _jaxtyping  # noqa: E402
 
 with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from . import data as data

@@ -7,12 +7,23 @@ computation that a dying interpreter then tears down (which can crash the proces
 `raise_if_interrupted()` at points where stopping is safe (between training steps, between
 chunks of rays), and the `KeyboardInterrupt` is raised there. A second Ctrl-C while the first
 waits for such a point is raised at once, for a user who does not want to wait.
+
+Outside these blocks Python's own handler raises the `KeyboardInterrupt`. Where that lands in
+code whose exceptions Python cannot pass on (a garbage-collection callback such as JAX's, a
+`__del__`), Python prints "Exception ignored in ..." and drops it, and the program runs on as if
+Ctrl-C had not been pressed. `redeliver_dropped_interrupts()`, which importing the package calls
+before it imports JAX, hands such an interrupt to the main thread again, where it is raised (or
+recorded, inside `deferred_interrupts()`) as soon as Python can.
 """
 
+import _thread
 import contextlib
 import signal
+import sys
 import threading
+import time
 from collections.abc import Iterator
+from typing import Any
 
 _requested = False
 _active = 0
@@ -63,3 +74,31 @@ def raise_if_interrupted() -> None:
     if _requested:
         _requested = False
         raise KeyboardInterrupt
+
+
+_redelivering = False
+
+
+def _interrupt_main_soon() -> None:
+    time.sleep(0.05)
+    _thread.interrupt_main()
+
+
+def redeliver_dropped_interrupts() -> None:
+    """Makes a `KeyboardInterrupt` that Python would drop as unraisable interrupt the main thread
+    again (see the module's docstring); other unraisable exceptions go to the hook that was there."""
+    global _redelivering
+    if _redelivering:
+        return
+    previous = sys.unraisablehook
+
+    def hook(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            # As if Ctrl-C were pressed again once this hook has returned: the main thread would
+            # handle an interrupt made here inside the hook, where Python drops it once more.
+            threading.Thread(target=_interrupt_main_soon, daemon=True).start()
+        else:
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    _redelivering = True

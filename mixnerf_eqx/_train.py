@@ -96,6 +96,7 @@ class _RunLog:
         # Entries past the checkpoint belong to a run that ended without saving them (a crash
         # or a kill): the resumed run redoes those steps, so the log keeps one entry per step.
         _truncate_log(self.path, start)
+        self.evaluated = _evaluated_steps(self.path)
         self.file = open(self.path, "a")  # noqa: SIM115 (closed by `close`)
         self.history: list[dict[str, Any]] = []
         self.progress = Progress(total, initial=start, unit="step", enabled=progress)
@@ -120,6 +121,7 @@ class _RunLog:
         shown = ", ".join(f"{k} {v:.4f}" for k, v in means.items() if v is not None)
         self.progress.write(f"step {done}: validation {shown}")
         self._write({"step": done, "eval": means, "split": "val"})
+        self.evaluated.add(done)
 
     def _write(self, entry: dict[str, Any]) -> None:
         # Flushed at once, so that `tail -f` follows the run and a crash loses no entry.
@@ -154,6 +156,14 @@ def _truncate_log(log_path: Path, last_step: int) -> None:
         temporary = log_path.with_suffix(".jsonl.tmp")
         temporary.write_text("".join(line + "\n" for line in kept))
         temporary.replace(log_path)
+
+
+def _evaluated_steps(log_path: Path) -> set[int]:
+    """The steps that `log_path` holds a periodic evaluation of."""
+    if not log_path.is_file():
+        return set()
+    entries = (json.loads(line) for line in log_path.read_text().splitlines() if line.strip())
+    return {entry["step"] for entry in entries if "eval" in entry}
 
 
 class _Guard:
@@ -342,6 +352,11 @@ def _fit_holding(
         # Ctrl-C stops the loop only between steps or between chunks of a render, so the
         # state saved holds exactly the steps it is named after.
         with deferred_interrupts():
+            if start and _due(start, eval_every) and start < train.max_steps and start not in log.evaluated:
+                # A Ctrl-C during this step's evaluation checkpointed the step without it (a kill
+                # leaves an older checkpoint, and the loop redoes the step and its evaluation).
+                log.evaluation(start, _periodic_evaluation(config, dataset, state))
+                raise_if_interrupted()
             for done in range(start + 1, last_step + 1):
                 state, metrics = take_step(state, draw(data, state, train.batch_size))
                 evaluate_now = _due(done, eval_every) and done < train.max_steps
