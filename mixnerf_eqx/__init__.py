@@ -34,6 +34,8 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._config import ScheduleSteps as ScheduleSteps
     from ._config import SettingWarning as SettingWarning
     from ._config import config_from_dict as config_from_dict
+    from ._config import config_names as config_names
+    from ._config import config_path as config_path
     from ._config import config_to_dict as config_to_dict
     from ._config import load_config as load_config
     from ._config import schedule_steps as schedule_steps

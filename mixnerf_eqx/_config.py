@@ -1,4 +1,8 @@
-"""The configuration schema: typed, frozen dataclasses loaded from `configs/*.toml`.
+"""The configuration schema: typed, frozen dataclasses loaded from TOML files.
+
+The package carries its configs (`mixnerf_eqx/configs/*.toml`, package data; `configs/` in a
+checkout is a link to that folder), so `load_config("llff3_grid")` works after any install;
+`config_names()` lists them. A path to a file of one's own works the same way.
 
 This module is the bottom layer: it imports nothing of the model, so that loading a scene
 (`data/`) or reading a run's settings does not build or import one. What each section means
@@ -6,6 +10,7 @@ for the model is decided where the model is built (`mixnerf_eqx._model.build_mod
 """
 
 import dataclasses
+import importlib.resources
 import tomllib
 import types
 import typing
@@ -516,13 +521,43 @@ def _load_file(path: Path, chain: tuple[Path, ...]) -> Config:
     return config_from_dict(values, str(path), base)
 
 
+def _packaged_configs() -> Path:
+    folder = importlib.resources.files("mixnerf_eqx") / "configs"
+    # An installed package is a folder on disk (setuptools installs no zipped eggs), and
+    # `extends` needs the files beside each other.
+    return Path(str(folder))
+
+
+def config_names() -> list[str]:
+    """The names of the configs the package carries (`load_config(name)` loads one)."""
+    return sorted(path.stem for path in _packaged_configs().glob("*.toml"))
+
+
+def config_path(name_or_path: str | Path) -> Path:
+    """The file that `name_or_path` names: a TOML file, or one of the package's configs by its
+    name (`"llff3_grid"`, or `"llff3_grid.toml"`) when no such file exists."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    if path.parent != Path("."):
+        raise ConfigError(f"config file {path} does not exist")
+    packaged = _packaged_configs() / f"{path.stem if path.suffix == '.toml' else path.name}.toml"
+    if packaged.is_file():
+        return packaged
+    raise ConfigError(
+        f"no file {path} here and no packaged config named {packaged.stem} "
+        f"(the package's: {', '.join(config_names())})"
+    )
+
+
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> Config:
     """Loads a TOML config (defaults when `path` is None) and applies `section.key=value`
     overrides, whose values are parsed as TOML (strings may be left unquoted).
 
-    A file may start from another with `extends = "other.toml"` (relative to the file).
+    `path` is a file, or the name of one of the package's configs (`config_names()`). A file
+    may start from another with `extends = "other.toml"` (relative to the file).
     """
-    config = Config() if path is None else _load_file(Path(path), ())
+    config = Config() if path is None else _load_file(config_path(path), ())
     # All overrides are applied at once, so that settings that must change together (the
     # method and its loss weights) can be given as separate overrides.
     merged: dict[str, Any] = {}

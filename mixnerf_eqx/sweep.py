@@ -1,4 +1,4 @@
-"""Reproduce a table: `python -m mixnerf_eqx.sweep --config configs/<name>.toml [--seeds 0,1,2] [...]`.
+"""Reproduce a table: `python -m mixnerf_eqx.sweep --config NAME|FILE.toml [--seeds 0,1,2] [...]`.
 
 Trains and evaluates the config on every scene of its benchmark (or `--scenes`) with every
 seed, one run folder each under `--out`; runs again to resume what is unfinished (finished
@@ -25,7 +25,9 @@ from .train import DEFAULT_CONFIG
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.sweep", description=__doc__.split("\n")[0])
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="TOML config (default: builtin)")
+    parser.add_argument(
+        "--config", default=DEFAULT_CONFIG, help=f"a packaged config's name or a TOML file (default: {DEFAULT_CONFIG})"
+    )
     parser.add_argument("--seeds", default="0", help="comma-separated seeds (default: 0)")
     parser.add_argument("--scenes", default="", help="comma-separated scenes (default: the benchmark's)")
     parser.add_argument(

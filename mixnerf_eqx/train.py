@@ -1,7 +1,9 @@
-"""Train MixNeRF: `python -m mixnerf_eqx.train [--config configs/<name>.toml] [section.key=value ...]`.
+"""Train MixNeRF: `python -m mixnerf_eqx.train [--config NAME|FILE.toml] [section.key=value ...]`.
 
-Without `--config` it trains on the built-in procedural scene with `configs/builtin_grid.toml`,
-reports the test metrics and writes renders. Runs resume from their latest checkpoint.
+Without `--config` it trains on the built-in procedural scene with the packaged `builtin_grid`
+config, reports the test metrics and writes renders. `--config` takes one of the package's
+configs by name (`llff3_grid`; `mx.config_names()` lists them) or a TOML file. Runs resume
+from their latest checkpoint.
 """
 
 import argparse
@@ -10,18 +12,18 @@ from pathlib import Path
 
 from ._cli import report_error
 from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
-from ._config import ConfigError, load_config, replace_setting
+from ._config import ConfigError, config_path, load_config, replace_setting
 from ._interrupt import deferred_interrupts
 from ._train import TrainingDiverged, fit
 from ._typecheck import add_typecheck_argument, typecheck_argument
 
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "builtin_grid.toml"
+DEFAULT_CONFIG = "builtin_grid"  # the quick start: a packaged config
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.train", description=__doc__.split("\n")[0])
     parser.add_argument(
-        "--config", type=Path, default=None, help="TOML config (default: configs/builtin_grid.toml)"
+        "--config", default=DEFAULT_CONFIG, help=f"a packaged config's name or a TOML file (default: {DEFAULT_CONFIG})"
     )
     parser.add_argument("--run-dir", default=None, help="output folder (default: the config's train.run_dir)")
     parser.add_argument(
@@ -57,23 +59,15 @@ def _print_report(metrics: dict, run_dir: Path) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    config_path = args.config
-    if config_path is None:
-        if not DEFAULT_CONFIG.is_file():
-            print(
-                f"error: no --config given and the default {DEFAULT_CONFIG.name} was not found",
-                file=sys.stderr,
-            )
-            return 2
-        config_path = DEFAULT_CONFIG
     try:
-        config = load_config(config_path, args.overrides)
+        path = config_path(args.config)
+        config = load_config(path, args.overrides)
         # Paths are set as values, never spliced into an override string.
         if args.run_dir is not None:
             config = replace_setting(config, "train", run_dir=args.run_dir)
         if args.data_dir is not None:
             config = replace_setting(config, "data", data_dir=args.data_dir)
-        print(f"config {config_path} ({config.name}); outputs in {config.train.run_dir}")
+        print(f"config {args.config} ({config.name}); outputs in {config.train.run_dir}")
         result = fit(config, progress=not args.no_progress)
     except (ConfigError, ValueError, OSError) as error:
         return report_error(error)

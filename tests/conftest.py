@@ -46,11 +46,11 @@ def _release_compiled_programs():
 
 @pytest.fixture
 def tiny_config(tmp_path):
-    config = load_config("configs/builtin.toml", TINY_OVERRIDES)
+    config = load_config("builtin", TINY_OVERRIDES)
     return dataclasses.replace(config, train=dataclasses.replace(config.train, run_dir=str(tmp_path / "run")))
 
 
 @pytest.fixture(scope="session")
 def tiny_scene():
-    config = load_config("configs/builtin.toml", TINY_OVERRIDES)
+    config = load_config("builtin", TINY_OVERRIDES)
     return load_dataset(config.data)

@@ -8,7 +8,29 @@ import pytest
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, build_model, load_config
 
-CONFIGS = sorted(Path("configs").glob("*.toml"))
+# Files are found relative to the repository (and the package), not the working directory.
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = [mx.config_path(name) for name in mx.config_names()]
+NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
+
+
+def test_the_package_carries_every_config_of_the_checkout():
+    checkout = sorted(path.name for path in (REPO / "configs").glob("*.toml"))
+    assert len(CONFIGS) >= 30 and [path.name for path in CONFIGS] == checkout
+    assert len(NOTEBOOKS) >= 2
+
+
+def test_a_config_is_named_or_given_as_a_path(tmp_path, monkeypatch):
+    by_name = load_config("llff3_grid")
+    assert load_config("llff3_grid.toml") == by_name == load_config(REPO / "configs" / "llff3_grid.toml")
+    # A file in the working directory comes before a packaged config of the same name.
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "llff3_grid.toml").write_text('name = "mine"\nreproduces = "none"\n')
+    assert load_config("llff3_grid.toml").name == "mine" and load_config("llff3_grid").name == by_name.name
+    with pytest.raises(ConfigError, match=r"no packaged config named llff3_gird .*llff3_grid"):
+        load_config("llff3_gird")
+    with pytest.raises(ConfigError, match="config file elsewhere/llff3_grid.toml does not exist"):
+        load_config("elsewhere/llff3_grid.toml")
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
@@ -149,8 +171,8 @@ def test_extends_inherits_and_overrides(tmp_path):
 
 
 def test_baseline_config_is_builtin_without_nlls():
-    mixnerf = load_config("configs/builtin.toml")
-    baseline = load_config("configs/builtin_mipnerf.toml")
+    mixnerf = load_config("builtin")
+    baseline = load_config("builtin_mipnerf")
     assert baseline.method == "mipnerf" and mixnerf.method == "mixnerf"
     assert (
         baseline.model == mixnerf.model and baseline.data == mixnerf.data and baseline.optim == mixnerf.optim
@@ -160,7 +182,7 @@ def test_baseline_config_is_builtin_without_nlls():
 def test_notebooks_are_valid_python():
     import json
 
-    for path in Path("notebooks").glob("*.ipynb"):
+    for path in NOTEBOOKS:
         notebook = json.loads(path.read_text())
         for index, cell in enumerate(notebook["cells"]):
             if cell["cell_type"] == "code":
@@ -169,7 +191,7 @@ def test_notebooks_are_valid_python():
 
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
 def test_every_config_is_mapped_in_the_configs_readme(path):
-    readme = Path("configs/README.md").read_text()
+    readme = (REPO / "configs" / "README.md").read_text()
     assert f"`{path.name}`" in readme
     config = load_config(path)
     # Each paper cell's published PSNR stands both in the file and in the table.
@@ -190,7 +212,7 @@ def test_every_config_is_mapped_in_the_configs_readme(path):
 def test_paper_configs_hold_the_published_hyperparameters(
     name, lambda_depth, lambda_regen, max_steps, lr_init
 ):
-    config = load_config(Path("configs") / name)
+    config = load_config(name)
     assert config.loss.lambda_depth == lambda_depth
     assert config.loss.lambda_regen == lambda_regen
     assert config.train.max_steps == max_steps

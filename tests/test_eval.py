@@ -22,7 +22,7 @@ def trained(tmp_path_factory, tiny_scene):
 
     from mixnerf_eqx import load_config
 
-    config = load_config("configs/builtin.toml", TINY_OVERRIDES)
+    config = load_config("builtin", TINY_OVERRIDES)
     run_dir = tmp_path_factory.mktemp("eval") / "run"
     config = _with_train(config, max_steps=30, run_dir=str(run_dir))
     return fit(config, dataset=tiny_scene, progress=False, write_renders=False)

@@ -205,7 +205,7 @@ def test_density_noise_is_added_in_training_only():
     np.testing.assert_allclose(float(field.density(point, cov)), np.logaddexp(0.0, raw), rtol=1e-6)
     # The quick start sets it, and its baseline inherits it.
     for name in ("builtin_grid", "builtin_mipnerf_grid"):
-        config = mx.load_config(f"configs/{name}.toml")
+        config = mx.load_config(name)
         assert mx.build_model(config, key=jax.random.key(0)).field.density_noise == 1.0
 
 
@@ -237,7 +237,7 @@ def test_exponential_density_activation():
         _field(encoding, density_activation="relu")
     # The quick start uses it, and its baseline inherits it; the MLP-sized default stays softplus.
     for name in ("builtin_grid", "builtin_mipnerf_grid"):
-        config = mx.load_config(f"configs/{name}.toml")
+        config = mx.load_config(name)
         assert mx.build_model(config, key=jax.random.key(0)).field.density_activation == "exp"
     assert mx.load_config(None, ["model.field=grid"]).grid.density_activation == "softplus"
 
@@ -269,20 +269,20 @@ def test_coarse_to_fine_reveals_levels_and_is_never_trained():
 
 
 def test_grid_config_is_checked(tmp_path):
-    config = mx.load_config("configs/builtin_grid.toml")
+    config = mx.load_config("builtin_grid")
     assert config.model.field == "grid" and config.grid.encoding == "triplane"
     with pytest.raises(ConfigError, match="grid.max_resolution"):
-        mx.load_config("configs/builtin_grid.toml", ["grid.min_resolution=64", "grid.max_resolution=32"])
+        mx.load_config("builtin_grid", ["grid.min_resolution=64", "grid.max_resolution=32"])
     with pytest.raises(ConfigError, match="grid.encoding"):
-        mx.load_config("configs/builtin_grid.toml", ["grid.encoding=octree"])
-    unbounded = mx.load_config("configs/builtin_grid.toml", ["grid.box_radius=0"])
+        mx.load_config("builtin_grid", ["grid.encoding=octree"])
+    unbounded = mx.load_config("builtin_grid", ["grid.box_radius=0"])
     with pytest.raises(ValueError, match="scene_box"):
         mx.build_model(unbounded, key=jax.random.key(0))
 
 
 @pytest.fixture
 def tiny_grid_config(tmp_path):
-    config = mx.load_config("configs/builtin_grid.toml", [*TINY_OVERRIDES, *GRID_OVERRIDES])
+    config = mx.load_config("builtin_grid", [*TINY_OVERRIDES, *GRID_OVERRIDES])
     return dataclasses.replace(config, train=dataclasses.replace(config.train, run_dir=str(tmp_path / "run")))
 
 
@@ -312,7 +312,7 @@ def test_short_grid_run_learns_and_renders_with_skipping(tiny_grid_config, tiny_
 def test_the_quick_starts_settings_reach_its_baseline():
     """The quick start's entropy prior and frustum sampling apply to its baseline too (a fair
     comparison), and a field built from either samples the frustum's mean only."""
-    configs = [mx.load_config(f"configs/{name}.toml") for name in ("builtin_grid", "builtin_mipnerf_grid")]
+    configs = [mx.load_config(name) for name in ("builtin_grid", "builtin_mipnerf_grid")]
     weights = [LossWeights.from_config(config.loss, config.method) for config in configs]
     assert [w.opacity_entropy for w in weights] == [0.01, 0.01]
     assert not weights[1].uses_mixture  # the baseline: no mixture term, the same prior

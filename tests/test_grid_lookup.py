@@ -212,7 +212,7 @@ def test_the_model_uses_the_fields_batched_evaluation(tiny_scene):
     ]
     outputs = {}
     for lookup in ("vmap", "batched"):
-        config = mx.load_config("configs/builtin.toml", [*overrides, f'grid.lookup="{lookup}"'])
+        config = mx.load_config("builtin", [*overrides, f'grid.lookup="{lookup}"'])
         model = mx.init_train_state(config, tiny_scene).model
         assert model.field.lookup == lookup
         rays = mx.training_rays(tiny_scene).rays[0, :16]

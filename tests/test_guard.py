@@ -98,7 +98,7 @@ def test_stress_runs_stay_finite(tiny_config, tiny_scene, overrides, far):
     from mixnerf_eqx import load_config, render_views
     from mixnerf_eqx.data import load_dataset
 
-    config = load_config("configs/builtin.toml", [*TINY_OVERRIDES, *overrides, "train.max_steps=60"])
+    config = load_config("builtin", [*TINY_OVERRIDES, *overrides, "train.max_steps=60"])
     config = dataclasses.replace(
         config, train=dataclasses.replace(config.train, run_dir=tiny_config.train.run_dir)
     )

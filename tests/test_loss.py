@@ -126,7 +126,7 @@ def _rays(directions):
 
 @pytest.fixture(scope="module")
 def mixnerf_model():
-    config = mx.load_config("configs/builtin.toml", ["model.width=16", "model.depth=2", "model.skip_layer=1"])
+    config = mx.load_config("builtin", ["model.width=16", "model.depth=2", "model.skip_layer=1"])
     return mx.build_model(config, key=jax.random.key(0))
 
 
@@ -269,7 +269,7 @@ def test_the_priors_on_the_weights_add_their_weighted_terms(mixnerf_model, metho
     directions = np.tile([[0.0, 0.0, -1.0]], (8, 1))
     levels = {name: _random_level(rng, 8, 6, np.ones(8), np.ones(3)) for name in ("coarse", "fine")}
     target = jnp.asarray(as_f32(rng.uniform(0, 1, (8, 3))))
-    base = mx.load_config("configs/builtin.toml").loss
+    base = mx.load_config("builtin").loss
 
     def terms_with(**priors):
         weights = LossWeights.from_config(dataclasses.replace(base, **priors), method)

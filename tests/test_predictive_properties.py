@@ -208,7 +208,7 @@ def test_termination_refuses_exactly_the_bad_inputs_and_keeps_its_invariants(cou
 def tiny_model(tiny_scene):
     from helpers import TINY_OVERRIDES
 
-    config = mx.load_config("configs/builtin.toml", TINY_OVERRIDES)
+    config = mx.load_config("builtin", TINY_OVERRIDES)
     return mx.init_train_state(config, tiny_scene).model
 
 

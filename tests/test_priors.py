@@ -92,7 +92,7 @@ def test_a_plane_tilted_along_rows_costs_its_slope_squared_per_pair():
 
 @pytest.fixture(scope="module")
 def smooth_setup():
-    config = mx.load_config("configs/builtin.toml", [*TINY_OVERRIDES, *SMOOTH])
+    config = mx.load_config("builtin", [*TINY_OVERRIDES, *SMOOTH])
     return config, mx.data.load_dataset(config.data)
 
 
@@ -170,7 +170,7 @@ def test_the_unseen_entropy_alone_draws_patches_and_enters_with_its_weight():
         "loss.smoothness_patches=2",
         "loss.smoothness_patch_size=4",
     ]
-    config = mx.load_config("configs/builtin.toml", [*TINY_OVERRIDES, *overrides])
+    config = mx.load_config("builtin", [*TINY_OVERRIDES, *overrides])
     dataset = mx.data.load_dataset(config.data)
     data = training_rays(dataset, config.loss)
     state = init_train_state(config, dataset)

@@ -119,7 +119,7 @@ def test_a_ctrl_c_in_the_set_up_before_the_loop_stops_the_run(tiny_scene, tmp_pa
 
     monkeypatch.setattr(_train, "load_dataset", load_interrupted)
     run_dir = tmp_path / "run"
-    code = train_cli.main(["--config", "configs/builtin.toml", *TINY_OVERRIDES, "--run-dir", str(run_dir), "--no-progress"])
+    code = train_cli.main(["--config", "builtin", *TINY_OVERRIDES, "--run-dir", str(run_dir), "--no-progress"])
     assert code == 130 and loaded == [True]
     steps = [json.loads(line)["step"] for line in (run_dir / "train_log.jsonl").read_text().splitlines()]
     assert max(steps, default=0) < 150  # stopped long before train.max_steps
@@ -389,7 +389,7 @@ def test_a_huge_chunk_is_bounded_by_the_rays(tiny_config, tiny_scene):
 def test_meaningless_settings_are_refused_naming_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         mx.load_config(
-            "configs/builtin.toml", [override, "data.far=4.0"] if "near" in override else [override]
+            "builtin", [override, "data.far=4.0"] if "near" in override else [override]
         )
 
 

@@ -107,7 +107,7 @@ def test_a_path_for_the_other_kind_of_scene_is_drawn_with_a_warning(tiny_scene):
 def trained_run(tmp_path_factory):
     # A small grid for the skipping render, its threshold from the config (no calibration).
     overrides = ["occupancy.resolution=16", "occupancy.calibrate=false", "occupancy.density_threshold=0.5"]
-    config = mx.load_config("configs/builtin.toml", [*TINY_OVERRIDES, *overrides])
+    config = mx.load_config("builtin", [*TINY_OVERRIDES, *overrides])
     run_dir = tmp_path_factory.mktemp("render") / "run"
     config = dataclasses.replace(config, train=dataclasses.replace(config.train, run_dir=str(run_dir)))
     # 20 steps and a checkpoint, without the final evaluation: a video needs no scores.

@@ -36,7 +36,7 @@ _FOUR_DEVICES = textwrap.dedent(
     jax.config.update("jax_compilation_cache_dir", f"{run_root}/xla-cache")
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    config = mx.load_config("configs/builtin.toml", overrides)
+    config = mx.load_config("builtin", overrides)
     scene = load_dataset(config.data)
     batch_size = config.train.batch_size
 
@@ -83,7 +83,7 @@ _FOUR_DEVICES = textwrap.dedent(
     runs = {}
     for mode in ("off", "auto"):
         settings = [f"train.data_parallel={mode}", f'train.run_dir="{run_root}/{mode}"']
-        run_config = mx.load_config("configs/builtin.toml", [*overrides, *settings])
+        run_config = mx.load_config("builtin", [*overrides, *settings])
         # Stopped before the end, so the held-out check is the periodic evaluation's (no LPIPS).
         result = mx.fit(run_config, dataset=scene, progress=False, log_every=5, stop_after=20)
         log = [json.loads(line) for line in open(f"{run_root}/{mode}/train_log.jsonl")]

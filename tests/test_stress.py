@@ -25,7 +25,7 @@ from helpers import (
     ref_expected_depth,
     ref_positional_encoding,
 )
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from mixnerf_eqx import LaplaceMixture, blend_weights
@@ -587,6 +587,7 @@ def _encodings_with_grads(means, covs, max_deg):
 
 
 @SETTINGS
+@example(t0=1.1754943508222875e-38, width=0.0)  # found by hypothesis: moments below float32's range
 @given(
     t0=st.one_of(st.just(0.0), st.floats(0.0, 10.0)),
     width=st.one_of(st.just(0.0), st.floats(1e-3, 10.0), st.just(1e10)),
@@ -602,9 +603,12 @@ def test_frustum_moments_stress(t0, width):
         reference = quadrature_frustum_moments(t0_r, t1_r, 0.01, "cone")
         # Quadrature of `t^2`-weighted moments cancels catastrophically when the interval is
         # a tiny fraction of t; compare each moment relative to the size it is computed at.
+        # Below float32's smallest normal number (t near 1e-38: t^2 underflows) only that
+        # absolute resolution is left.
         sizes = (t1_r, t1_r**2, 0.01**2 * t1_r**2)
+        floor = float(np.finfo(np.float32).tiny)
         for value, ref, size in zip(moments, reference, sizes, strict=True):
-            np.testing.assert_allclose(float(value[0]), ref, rtol=0, atol=MOMENT_RTOL * size)
+            np.testing.assert_allclose(float(value[0]), ref, rtol=0, atol=MOMENT_RTOL * size + floor)
     else:
         np.testing.assert_array_equal(np.asarray(moments), 0.0)
     grads = jax.grad(

@@ -19,7 +19,7 @@ SWEEP_OVERRIDES = [o for o in TINY_OVERRIDES if not o.startswith("train.max_step
 
 
 def test_the_plan_covers_the_benchmark_with_every_seed(tmp_path):
-    config = mx.load_config("configs/llff3.toml")
+    config = mx.load_config("llff3")
     runs = plan_sweep(config, tmp_path, seeds=[0, 3])
     assert [(run.scene, run.seed) for run in runs] == [
         (scene, seed) for scene in llff.SCENES for seed in (0, 3)
@@ -32,13 +32,13 @@ def test_the_plan_covers_the_benchmark_with_every_seed(tmp_path):
 
 
 def test_published_numbers_are_read_from_the_reproduces_line():
-    config = mx.load_config("configs/llff3.toml")
+    config = mx.load_config("llff3")
     assert published_numbers(config.reproduces) == {"psnr": 19.27, "ssim": 0.629, "lpips": 0.236}
     assert published_numbers("none (quick start)") == {}
 
 
 def test_the_table_is_the_mean_over_scenes_and_its_spread_over_seeds(tmp_path):
-    config = mx.load_config("configs/llff3.toml")
+    config = mx.load_config("llff3")
     runs = plan_sweep(config, tmp_path, scenes=["fern", "horns"], seeds=[0, 1, 2])
     psnr = {("fern", 0): 20.0, ("fern", 1): 21.0, ("fern", 2): 22.5, ("horns", 0): 18.0, ("horns", 1): 17.0}
     results = {
@@ -78,7 +78,7 @@ def _import_submitit(monkeypatch):
 def _sweep_arguments(out, *extra):
     return [
         "--config",
-        "configs/builtin.toml",
+        "builtin",
         "--seeds",
         "0,1",
         "--out",
@@ -91,7 +91,7 @@ def _sweep_arguments(out, *extra):
 
 def test_a_sweep_resumes_what_is_unfinished_and_reads_what_is_finished(tmp_path, capsys):
     out = tmp_path / "sweep"
-    config = mx.load_config("configs/builtin.toml", SWEEP_OVERRIDES)
+    config = mx.load_config("builtin", SWEEP_OVERRIDES)
     seed_1 = plan_sweep(config, out, seeds=[0, 1])[1]
     # Seed 1 was stopped after 3 steps (a checkpoint, no metrics): the sweep continues it.
     mx.fit(seed_1.config, progress=False, stop_after=3)
@@ -128,6 +128,7 @@ def test_a_sweep_resumes_what_is_unfinished_and_reads_what_is_finished(tmp_path,
         (["--seeds", "a,b"], "--seeds must be comma-separated integers"),
         (["--seeds", "-1"], "--seeds must list non-negative integers"),
         (["--config", "configs/nothing.toml"], "does not exist"),
+        (["--config", "nothing"], "no packaged config named nothing"),
         (["--engine", "submitit", "--timeout-min", "0"], "--timeout-min must be positive"),
     ],
 )
@@ -142,7 +143,7 @@ def test_the_sweep_refuses_meaningless_arguments(tmp_path, arguments, message, c
 def test_missing_scene_files_fail_that_run_only(tmp_path, capsys):
     arguments = [
         "--config",
-        "configs/llff3.toml",
+        "llff3",
         "--scenes",
         "fern",
         "--data-dir",
@@ -158,7 +159,7 @@ def test_missing_scene_files_fail_that_run_only(tmp_path, capsys):
 
 
 def test_an_unknown_scene_is_refused_before_any_run(tmp_path, capsys):
-    arguments = ["--config", "configs/llff3.toml", "--scenes", "fern,fernn", "--data-dir", str(tmp_path)]
+    arguments = ["--config", "llff3", "--scenes", "fern,fernn", "--data-dir", str(tmp_path)]
     assert sweep.main([*arguments, "--out", str(tmp_path / "s")]) == 2
     error = capsys.readouterr().err
     assert "unknown llff scene 'fernn'" in error and "Fix --scenes" in error
@@ -175,7 +176,7 @@ def test_a_repeated_seed_or_scene_is_named(tmp_path, capsys):
 
 def test_resuming_an_unfinished_run_with_other_settings_names_the_sweep_folder(tmp_path):
     out = tmp_path / "sweep"
-    config = mx.load_config("configs/builtin.toml", SWEEP_OVERRIDES)
+    config = mx.load_config("builtin", SWEEP_OVERRIDES)
     mx.fit(plan_sweep(config, out)[0].config, progress=False, stop_after=3)
     assert sweep.main(_sweep_arguments(out, "loss.lambda_depth=0.5")) == 1
     failed = json.loads((out / "table.json").read_text())["failed"]["builtin seed 0"]

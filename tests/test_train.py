@@ -250,7 +250,7 @@ def test_schedules_given_as_fractions_of_the_run(tiny_config, tiny_scene):
 )
 def test_schedule_fractions_out_of_range(key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        mx.load_config("configs/builtin.toml", [f"{key}=1.5"])
+        mx.load_config("builtin", [f"{key}=1.5"])
 
 
 def test_periodic_evaluation_renders_validation_views(tiny_config, tiny_scene):

@@ -122,13 +122,13 @@ def test_a_reveal_longer_than_the_run_is_a_warning_and_a_fraction_is_not(tiny_sc
     from mixnerf_eqx._config import replace_setting
 
     grid = [*TINY_OVERRIDES, "model.field=\"grid\"", "grid.levels=2", "grid.min_resolution=8", "grid.max_resolution=16"]
-    long = mx.load_config("configs/builtin.toml", [*grid, "train.max_steps=3", "grid.coarse_to_fine_steps=10"])
+    long = mx.load_config("builtin", [*grid, "train.max_steps=3", "grid.coarse_to_fine_steps=10"])
     (message,) = mx.setting_warnings(long)
     assert message.startswith("grid.coarse_to_fine_steps = 10 is longer than the run (train.max_steps = 3)")
     assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_fraction=1.0)) == []
     assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_steps=3)) == []
     # The MLP has no levels to reveal: the grid's keys say nothing to it.
-    assert mx.setting_warnings(mx.load_config("configs/builtin.toml", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"])) == []
+    assert mx.setting_warnings(mx.load_config("builtin", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"])) == []
     # A run with it trains, and says so once at its start.
     long = replace_setting(long, "train", run_dir=str(tmp_path / "run"))
     with pytest.warns(mx.SettingWarning, match="the finest levels are never fully revealed"):
@@ -144,7 +144,7 @@ def test_the_public_api_keeps_its_names():
 def tiny_model(tiny_scene):
     from helpers import TINY_OVERRIDES
 
-    config = mx.load_config("configs/builtin.toml", TINY_OVERRIDES)
+    config = mx.load_config("builtin", TINY_OVERRIDES)
     return mx.init_train_state(config, tiny_scene).model
 
 

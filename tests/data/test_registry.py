@@ -225,7 +225,7 @@ def test_command_line_reports_one_error_line(tmp_path):
             "-m",
             "mixnerf_eqx.train",
             "--config",
-            "configs/blender4.toml",
+            "blender4",
             "--data-dir",
             str(missing),
         ],
