@@ -63,11 +63,6 @@ def deferred_interrupts() -> Iterator[None]:
                 raise KeyboardInterrupt
 
 
-def interrupt_requested() -> bool:
-    """Whether Ctrl-C was pressed inside `deferred_interrupts()` and not yet raised."""
-    return _requested
-
-
 def raise_if_interrupted() -> None:
     """Raises `KeyboardInterrupt` here if Ctrl-C was pressed since the block began."""
     global _requested

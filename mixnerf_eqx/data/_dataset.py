@@ -191,10 +191,3 @@ def rays_at_poses(like: Views, camtoworlds: PoseStack, near: float, far: float) 
         origin_plane_z=like.origin_plane_z,
     )
 
-
-def check_images(images: Float[np.ndarray, "..."], name: str) -> None:
-    """Raises a clear error when an image stack is not finite float data in [0, 1]."""
-    if not np.all(np.isfinite(images)):
-        raise ValueError(f"{name}: images contain non-finite values")
-    if images.min() < 0 or images.max() > 1:
-        raise ValueError(f"{name}: image values must lie in [0, 1]")
