@@ -375,7 +375,7 @@ class TrainingRun:
         """Rendering options for evaluating now (`None`: dense), not counted as training."""
         if self.state.grid is None:
             return None
-        key = jax.random.fold_in(jax.random.fold_in(self.state.key, 0x0CC), self.step + 1)
+        key = mx.occupancy_key(self.state.key, self.step + 1)
         occupancy = dataclasses.replace(self.config.occupancy, calibrate=False)
         grid, _ = mx.grid_for_rendering(occupancy, self.dataset, self.model, key=key, grid=self.state.grid)
         return mx.make_skipping(self.config.occupancy, grid)

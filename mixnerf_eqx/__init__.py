@@ -126,6 +126,7 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._train_state import make_occupancy_grid as make_occupancy_grid
     from ._train_state import make_optimizer as make_optimizer
     from ._train_state import make_train_step as make_train_step
+    from ._train_state import occupancy_key as occupancy_key
     from ._train_state import scene_box as scene_box
     from ._train_state import training_rays as training_rays
     from ._train_state import update_grid as update_grid

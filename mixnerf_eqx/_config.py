@@ -540,7 +540,10 @@ def config_path(name_or_path: str | Path) -> Path:
     if path.is_file():
         return path
     if path.parent != Path("."):
-        raise ConfigError(f"config file {path} does not exist")
+        hint = ""
+        if path.suffix == ".toml" and (_packaged_configs() / path.name).is_file():
+            hint = f" (the package carries one by that name: --config {path.stem})"
+        raise ConfigError(f"config file {path} does not exist{hint}")
     packaged = _packaged_configs() / f"{path.stem if path.suffix == '.toml' else path.name}.toml"
     if packaged.is_file():
         return packaged

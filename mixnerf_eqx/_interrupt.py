@@ -88,7 +88,10 @@ def redeliver_dropped_interrupts() -> None:
     previous = sys.unraisablehook
 
     def hook(unraisable: Any) -> None:
-        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        # Where it cannot be handed back (Python shutting down, or SIGINT not handled by a
+        # Python handler, so that `interrupt_main` would do nothing), Python reports it as before.
+        handled = callable(signal.getsignal(signal.SIGINT)) and not sys.is_finalizing()
+        if isinstance(unraisable.exc_value, KeyboardInterrupt) and handled:
             # As if Ctrl-C were pressed again once this hook has returned: the main thread would
             # handle an interrupt made here inside the hook, where Python drops it once more.
             threading.Thread(target=_interrupt_main_soon, daemon=True).start()

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
-import jax
 
 from . import _json as strict_json
 from ._checkpoint import (
@@ -49,6 +48,7 @@ from ._train_state import (
     draw_batch,
     init_train_state,
     make_train_step,
+    occupancy_key,
     training_rays,
     update_grid,
 )
@@ -353,8 +353,9 @@ def _fit_holding(
         # state saved holds exactly the steps it is named after.
         with deferred_interrupts():
             if start and _due(start, eval_every) and start < train.max_steps and start not in log.evaluated:
-                # A Ctrl-C during this step's evaluation checkpointed the step without it (a kill
-                # leaves an older checkpoint, and the loop redoes the step and its evaluation).
+                # The step resumed from is due an evaluation that the log lacks: a Ctrl-C during
+                # it checkpointed the step without it (a kill leaves an older checkpoint, and the
+                # loop redoes the step and its evaluation), or eval_every changed since.
                 log.evaluation(start, _periodic_evaluation(config, dataset, state))
                 raise_if_interrupted()
             for done in range(start + 1, last_step + 1):
@@ -431,13 +432,11 @@ def _final_report(
 
     grid = skipping = choice = None
     if state.grid is not None:
-        step = int(state.step)
-        grid_key = jax.random.fold_in(state.key, 0x0CC)
         grid, choice = grid_for_rendering(
             config.occupancy,
             dataset,
             state.model,
-            key=jax.random.fold_in(grid_key, step + 1),
+            key=occupancy_key(state.key, int(state.step) + 1),
             grid=state.grid,
         )
         skipping = make_skipping(config.occupancy, grid)

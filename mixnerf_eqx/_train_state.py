@@ -334,6 +334,12 @@ def make_train_step(
     return eqx.filter_jit(train_step)
 
 
+def occupancy_key(key: PRNGKey, step: Int[Array, ""] | int) -> PRNGKey:
+    """The randomness of the occupancy grid's work at `step` (its updates, and the final
+    render's threshold calibration at `step + 1`): a stream apart from the steps' own."""
+    return jax.random.fold_in(jax.random.fold_in(key, 0x0CC), step)
+
+
 @eqx.filter_jit
 def update_grid(state: TrainState, occupancy: OccupancyConfig) -> TrainState:
     """`state` with `occupancy.update_fraction` of its grid's cells re-evaluated.
@@ -343,11 +349,10 @@ def update_grid(state: TrainState, occupancy: OccupancyConfig) -> TrainState:
     """
     if state.grid is None:
         return state
-    grid_key = jax.random.fold_in(state.key, 0x0CC)
     grid = update_occupancy(
         state.grid,
         state.model.field,
-        key=jax.random.fold_in(grid_key, state.step),
+        key=occupancy_key(state.key, state.step),
         decay=occupancy.decay,
         fraction=occupancy.update_fraction,
         offset=state.step // occupancy.update_every,

@@ -26,7 +26,9 @@ from .train import DEFAULT_CONFIG
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.sweep", description=__doc__.split("\n")[0])
     parser.add_argument(
-        "--config", default=DEFAULT_CONFIG, help=f"a packaged config's name or a TOML file (default: {DEFAULT_CONFIG})"
+        "--config",
+        default=DEFAULT_CONFIG,
+        help=f"a packaged config's name or a TOML file (default: {DEFAULT_CONFIG})",
     )
     parser.add_argument("--seeds", default="0", help="comma-separated seeds (default: 0)")
     parser.add_argument("--scenes", default="", help="comma-separated scenes (default: the benchmark's)")

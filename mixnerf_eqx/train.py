@@ -23,7 +23,9 @@ DEFAULT_CONFIG = "builtin_grid"  # the quick start: a packaged config
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.train", description=__doc__.split("\n")[0])
     parser.add_argument(
-        "--config", default=DEFAULT_CONFIG, help=f"a packaged config's name or a TOML file (default: {DEFAULT_CONFIG})"
+        "--config",
+        default=DEFAULT_CONFIG,
+        help=f"a packaged config's name or a TOML file (default: {DEFAULT_CONFIG})",
     )
     parser.add_argument("--run-dir", default=None, help="output folder (default: the config's train.run_dir)")
     parser.add_argument(
@@ -67,7 +69,8 @@ def _train(args: argparse.Namespace) -> int:
             config = replace_setting(config, "train", run_dir=args.run_dir)
         if args.data_dir is not None:
             config = replace_setting(config, "data", data_dir=args.data_dir)
-        print(f"config {args.config} ({config.name}); outputs in {config.train.run_dir}")
+        shown = args.config if str(path) == str(args.config) else f"{args.config} ({path})"
+        print(f"config {shown}, {config.name}; outputs in {config.train.run_dir}")
         result = fit(config, progress=not args.no_progress)
     except (ConfigError, ValueError, OSError) as error:
         return report_error(error)

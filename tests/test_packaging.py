@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 import mixnerf_eqx as mx
 here = Path(mx.__file__).resolve().parent
-assert "site-packages" in here.parts, here  # the installed wheel, not the checkout
+assert here.is_relative_to(Path(sys.prefix).resolve()), here  # the new environment's copy
 names = mx.config_names()
 assert "builtin_grid" in names and "llff3" in names, names
 for name in names:
@@ -32,12 +32,25 @@ print(len(names), "configs")
 def test_a_wheel_installed_elsewhere_has_its_configs_and_trains(tmp_path):
     # Built from a copy of what the wheel is made of, so that the build leaves nothing in the checkout.
     source = tmp_path / "source"
-    shutil.copytree(REPO / "mixnerf_eqx", source / "mixnerf_eqx", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(
+        REPO / "mixnerf_eqx", source / "mixnerf_eqx", ignore=shutil.ignore_patterns("__pycache__")
+    )
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(REPO / name, source / name)
     wheels = tmp_path / "wheels"
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "-w", str(wheels), str(source)],
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(wheels),
+            str(source),
+        ],
         check=True,
         capture_output=True,
     )
@@ -55,7 +68,8 @@ def test_a_wheel_installed_elsewhere_has_its_configs_and_trains(tmp_path):
     )
     # The dependencies come from this interpreter's environment (a path in a .pth file: its own
     # .pth files, such as an editable install's finder, are not read); the package from the wheel.
-    (site / "dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    ours = sysconfig.get_paths()
+    (site / "dependencies.pth").write_text("".join(f"{ours[kind]}\n" for kind in ("purelib", "platlib")))
     subprocess.run(
         [sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps", str(wheel)],
         check=True,

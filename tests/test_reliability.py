@@ -142,6 +142,8 @@ def other_error(phase, info):
 gc.callbacks.append(other_error)
 gc.collect()
 with deferred_interrupts():
+    # (Here a dropped interrupt is one raised by hand: inside the block only a second Ctrl-C
+    # raises, and the hook must still compose with the deferral.)
     gc.callbacks.append(ctrl_c_here)
     gc.collect()
     time.sleep(0.2)
