@@ -463,12 +463,14 @@ def _checked(value, ok, message: str):
 
 def _in_unit_interval(dtype):
     """The check that a level lies in (0, 1), and still does once cast to `dtype` (1e-50 is 0
-    in float32, and 1 - 1e-9 is 1)."""
+    in float32, and 1 - 1e-9 is 1). A level below `dtype`'s smallest normal number is refused
+    too: XLA flushes subnormal numbers to zero on the CPU (1e-44 is 0 there)."""
+    smallest = np.finfo(dtype).tiny
 
     def ok(xp, x):
         inside = (x > 0) & (x < 1)
         cast = xp.asarray(xp.where(inside, x, 0.5), dtype)
-        return inside & (cast > 0) & (cast < 1)
+        return inside & (cast >= smallest) & (cast < 1)
 
     return ok
 
@@ -485,7 +487,8 @@ def _finite_positive(dtype):
 
 
 def _level_message(name: str, dtype) -> str:
-    return f"{name} must lie in (0, 1), also as a {jnp.dtype(dtype).name}"
+    smallest = np.finfo(dtype).tiny
+    return f"{name} must lie in (0, 1), also as a {jnp.dtype(dtype).name} (and be at least {smallest:.3g})"
 
 
 def _check_level(level: ScalarLike, name: str = "a quantile level or interval mass", dtype=None):
