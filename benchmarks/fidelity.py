@@ -271,9 +271,9 @@ def _weighted_term(model, name, rays, target, lambdas, weights, key, mask=None):
     lambda_colour, lambda_depth, lambda_regen, coarse = lambdas
     terms = mx.loss_terms(model(rays, key=key), model, rays, target, jnp.asarray(lambda_colour), weights)
     if name == "squared_error":
-        return 3 * (terms.mse_fine + coarse * terms.mse_coarse)
+        return 3 * (terms["mse_fine"] + coarse * terms["mse_coarse"])
     scale = {"nll_colour": lambda_colour, "nll_depth": lambda_depth, "nll_regen": lambda_regen}[name]
-    return scale * getattr(terms, name)
+    return scale * terms[name]
 
 
 def diagnose(

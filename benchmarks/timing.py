@@ -341,19 +341,13 @@ def part_rows(config: mx.Config, dataset: Dataset, repeats: int) -> dict[str, di
     # computed): the MSE alone, then each NLL added alone, then the config's weights.
     outputs = mx.RenderOutputs(coarse=coarse_level, fine=fine_level)
     weights = mx.LossWeights.from_config(config.loss, config.method)
-    mse_only = dataclasses.replace(weights, colour_nll=False, depth_nll=0.0, regen_nll=0.0)
+    nlls = {"nll_colour": "colour NLL", "nll_depth": "depth NLL", "nll_regen": "regenerated colour NLL"}
+    mse_only = weights.replace(**dict.fromkeys(nlls, 0.0))
     weight_rows = {"loss terms: MSE only": mse_only}
     if weights.uses_mixture:
-        if weights.colour_nll:
-            weight_rows["loss terms: MSE + colour NLL"] = dataclasses.replace(mse_only, colour_nll=True)
-        if weights.depth_nll > 0:
-            weight_rows["loss terms: MSE + depth NLL"] = dataclasses.replace(
-                mse_only, depth_nll=weights.depth_nll
-            )
-        if weights.regen_nll > 0:
-            weight_rows["loss terms: MSE + regenerated colour NLL"] = dataclasses.replace(
-                mse_only, regen_nll=weights.regen_nll
-            )
+        for name, label in nlls.items():
+            if weights[name] > 0:
+                weight_rows[f"loss terms: MSE + {label}"] = mse_only.replace(**{name: weights[name]})
         weight_rows["loss terms: the config's (MSE + mixture NLLs)"] = weights
     lambda_colour = jnp.asarray(0.5)
     for name, row_weights in weight_rows.items():

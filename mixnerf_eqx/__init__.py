@@ -61,10 +61,15 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._field import level_scale_weights as level_scale_weights
     from ._lock import FolderBusyError as FolderBusyError
     from ._lock import hold_folder as hold_folder
+    from ._loss import LossInputs as LossInputs
+    from ._loss import LossTerm as LossTerm
     from ._loss import LossTerms as LossTerms
     from ._loss import LossWeights as LossWeights
     from ._loss import loss_fn as loss_fn
+    from ._loss import loss_term_names as loss_term_names
     from ._loss import loss_terms as loss_terms
+    from ._loss import register_loss_term as register_loss_term
+    from ._loss import unregister_loss_term as unregister_loss_term
     from ._mixture import AbstractMixture as AbstractMixture
     from ._mixture import LaplaceMixture as LaplaceMixture
     from ._mixture.laplace import laplace_log_density as laplace_log_density

@@ -261,19 +261,9 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "model.density_noise",
             "model.rgb_padding",
             "model.resample_padding",
-            "loss.coarse_mse_weight",
-            "loss.lambda_colour_start",
-            "loss.lambda_colour_end",
             "loss.lambda_colour_steps",
-            "loss.lambda_depth",
-            "loss.lambda_regen",
             "loss.weight_eps",
             "loss.likelihood_floor",
-            "loss.distortion_weight",
-            "loss.opacity_weight",
-            "loss.opacity_entropy_weight",
-            "loss.unseen_entropy_weight",
-            "loss.depth_smoothness_weight",
             "optim.warmup_steps",
             "optim.decay_steps",
             "optim.grad_max_value",
@@ -309,6 +299,21 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
 )
 
 
+# The weights of the loss terms (`[loss]` keys), each at least 0: filled by the loss registry
+# (`mixnerf_eqx._loss.register_loss_term`), with whether the term is one of MixNeRF's own.
+_LOSS_WEIGHTS: dict[str, bool] = {}
+
+
+def register_loss_weight(key: str, *, mixture: bool) -> None:
+    """Declares `loss.key` the weight of a loss term: it must be at least 0, and where
+    `mixture`, it counts among the weights of which a MixNeRF run needs one non-zero."""
+    _LOSS_WEIGHTS[key] = mixture
+
+
+def unregister_loss_weight(key: str) -> None:
+    _LOSS_WEIGHTS.pop(key, None)
+
+
 def _setting(config: "Config", key: str) -> Any:
     section, name = key.split(".")
     return getattr(getattr(config, section), name)
@@ -318,8 +323,8 @@ def _consistency_problems(config: "Config") -> list[str]:
     """Settings that are each in range but cannot be used together."""
     problems = []
     model, data, loss, occupancy = config.model, config.data, config.loss, config.occupancy
-    nll_weights = (loss.lambda_colour_start, loss.lambda_colour_end, loss.lambda_depth, loss.lambda_regen)
-    if config.method == "mixnerf" and not any(nll_weights):
+    nll_weights = [getattr(loss, key) for key, mixture in _LOSS_WEIGHTS.items() if mixture]
+    if config.method == "mixnerf" and nll_weights and not any(nll_weights):
         problems.append(
             'every mixture loss weight is zero: for the mip-NeRF baseline set method = "mipnerf" '
             "(the method is no longer inferred from the lambdas)"
@@ -393,9 +398,10 @@ def setting_warnings(config: "Config") -> list[str]:
 
 def validate(config: "Config") -> None:
     """Raises `ConfigError` naming every setting whose value no run can use."""
+    ranges = (*_RANGES, *((f"loss.{key}", *_at_least(0)) for key in _LOSS_WEIGHTS))
     problems = [
         f"{key} {wanted}, got {_setting(config, key)!r}"
-        for key, check, wanted in _RANGES
+        for key, check, wanted in ranges
         if not check(_setting(config, key))
     ]
     problems += _consistency_problems(config)

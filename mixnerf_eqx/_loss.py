@@ -1,13 +1,27 @@
-"""The MixNeRF training objective (paper eq. 11)."""
+"""The MixNeRF training objective (paper eq. 11), as a registry of named terms.
+
+A term is a function of the rendered levels (and of the rays, the target colours and the
+unseen-view patches) and a weight, a `[loss]` key of the config. The total, the training log,
+the range check of the weights and `LossTerms` all come from the registry, so a new term is
+its function, `register_loss_term(LossTerm(...))` and its line in `LossConfig`:
+
+    def mean_depth(inputs: LossInputs) -> Float[Array, ""]:
+        return jnp.mean(inputs.outputs.fine.depth)
+
+    register_loss_term(LossTerm("mean_depth", mean_depth, weight="mean_depth_weight"))
+
+The terms add up in registration order (the paper's terms first, then the priors).
+"""
 
 import dataclasses
+from collections.abc import Callable, Iterator
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._config import LossConfig
+from ._config import LossConfig, register_loss_weight, unregister_loss_weight
 from ._custom_types import PRNGKey
 from ._model import MixNeRF, RenderOutputs
 from ._rays import RayBundle
@@ -16,87 +30,179 @@ from ._renderer import LevelOutputs
 
 
 @dataclasses.dataclass(frozen=True)
-class LossWeights:
-    """Static loss weights: a term whose weight is zero is not computed at all.
+class LossTerm:
+    """One named term of the objective.
 
     **Fields:**
 
-    - `coarse_mse`: weight of the coarse level's MSE (mip-NeRF: 0.1).
-    - `colour_nll`: whether lambda_C can be non-zero (its value comes per step).
-    - `depth_nll`: lambda_D.
-    - `regen_nll`: lambda_hat_C.
-    - `nll_levels`: `"coarse"` (the released code) or `"both"`.
-    - `distortion`: weight of the distortion loss (mip-NeRF 360), both levels.
-    - `opacity`: weight of the mean ray opacity, both levels.
-    - `opacity_entropy`: weight of the binary entropy of the ray opacity, both levels.
-    - `unseen_entropy`: the same on the unseen-view patches.
-    - `smoothness`: weight of the depth smoothness of unseen-view patches (RegNeRF).
-    - `patch_size`: the side of those patches.
+    - `name`: its key in `LossTerms` and in the training log.
+    - `compute`: `LossInputs -> scalar`, the term's value.
+    - `weight`: the `[loss]` key of its weight (at least 0; a zero weight skips the term);
+      `None`: weight 1, always computed (the fine MSE, the field's regulariser).
+    - `mixture`: one of MixNeRF's own terms (off for the baseline, `method = "mipnerf"`).
+    - `patches`: computed on the unseen-view patches (which are drawn and rendered only when
+      such a term has a non-zero weight).
+    - `per_channel`: the value is a per-element mean over rays and colour channels (the
+      quantity PSNR is defined on), while the objective sums the squared error over the
+      channels: the total takes `channels` times the value.
+    - `scheduled`: the weight follows a schedule from `<weight>_start` to `<weight>_end`, and
+      its value at the step is given to `loss_terms` (lambda_C; only one term may have one).
     """
 
-    coarse_mse: float = 0.1
-    colour_nll: bool = True
-    depth_nll: float = 1e-3
-    regen_nll: float = 1e-4
+    name: str
+    compute: Callable[["LossInputs"], Float[Array, ""]]
+    weight: str | None = None
+    mixture: bool = False
+    patches: bool = False
+    per_channel: bool = False
+    scheduled: bool = False
+
+    def weight_keys(self) -> tuple[str, ...]:
+        if self.weight is None:
+            return ()
+        return (f"{self.weight}_start", f"{self.weight}_end") if self.scheduled else (self.weight,)
+
+
+_REGISTRY: dict[str, LossTerm] = {}
+
+
+def register_loss_term(term: LossTerm) -> LossTerm:
+    """Adds `term` to the objective (after the terms registered before it)."""
+    if term.name in _REGISTRY or term.name == "total":
+        raise ValueError(f"a loss term named {term.name!r} is already registered")
+    if term.scheduled and (term.weight is None or any(other.scheduled for other in _REGISTRY.values())):
+        raise ValueError("one loss term at most has a scheduled weight, and it needs a weight key")
+    for key in term.weight_keys():
+        register_loss_weight(key, mixture=term.mixture)
+    _REGISTRY[term.name] = term
+    return term
+
+
+def unregister_loss_term(name: str) -> None:
+    """Removes the term `name` (and its weight's range check) from the objective."""
+    term = _REGISTRY.pop(name)
+    for key in term.weight_keys():
+        unregister_loss_weight(key)
+
+
+def loss_term_names() -> tuple[str, ...]:
+    """The names of the registered terms, in the order they add up."""
+    return tuple(_REGISTRY)
+
+
+@dataclasses.dataclass(frozen=True)
+class LossWeights:
+    """The static weights of one run's terms: a term whose weight is zero is not computed.
+
+    **Fields:**
+
+    - `weights`: `(name, weight)` of every registered term; a scheduled term's weight is 1
+      where its schedule is not zero throughout (its value comes per step).
+    - `nll_levels`: the levels the NLLs apply to, `"coarse"` (the released code) or `"both"`.
+    - `patch_size`: the side of the unseen-view patches.
+    """
+
+    weights: tuple[tuple[str, float], ...]
     nll_levels: str = "coarse"
-    distortion: float = 0.0
-    opacity: float = 0.0
-    opacity_entropy: float = 0.0
-    unseen_entropy: float = 0.0
-    smoothness: float = 0.0
     patch_size: int = 8
 
     @classmethod
     def from_config(cls, loss: LossConfig, method: str) -> "LossWeights":
-        """The weights `loss` sets for `method` (`"mipnerf"`: no mixture term at all)."""
-        # The priors on the weights apply to both methods alike, so the comparison stays fair.
-        priors = dict(
-            distortion=loss.distortion_weight,
-            opacity=loss.opacity_weight,
-            opacity_entropy=loss.opacity_entropy_weight,
-            unseen_entropy=loss.unseen_entropy_weight,
-            smoothness=loss.depth_smoothness_weight,
-            patch_size=loss.smoothness_patch_size,
-        )
-        if method == "mipnerf":
-            return cls(
-                coarse_mse=loss.coarse_mse_weight, colour_nll=False, depth_nll=0.0, regen_nll=0.0, **priors
-            )
-        return cls(
-            **priors,
-            coarse_mse=loss.coarse_mse_weight,
-            colour_nll=loss.lambda_colour_start != 0 or loss.lambda_colour_end != 0,
-            depth_nll=loss.lambda_depth,
-            regen_nll=loss.lambda_regen,
-            nll_levels=loss.nll_levels,
-        )
+        """The weights `loss` sets for `method` (`"mipnerf"`: no mixture term at all).
+
+        The priors on the weights apply to both methods alike, so the comparison stays fair.
+        """
+        weights = []
+        for term in _REGISTRY.values():
+            if term.mixture and method == "mipnerf":
+                value = 0.0
+            elif term.weight is None:
+                value = 1.0
+            elif term.scheduled:
+                value = float(any(getattr(loss, key) != 0 for key in term.weight_keys()))
+            else:
+                value = float(getattr(loss, term.weight))
+            weights.append((term.name, value))
+        return cls(tuple(weights), nll_levels=loss.nll_levels, patch_size=loss.smoothness_patch_size)
+
+    def __getitem__(self, name: str) -> float:
+        return dict(self.weights)[name]
+
+    def replace(self, **weights: float) -> "LossWeights":
+        """These weights with those of the terms named changed (`replace(nll_depth=0.0)`)."""
+        unknown = set(weights) - {name for name, _ in self.weights}
+        if unknown:
+            raise ValueError(f"no loss terms named {sorted(unknown)}; the terms are {list(_REGISTRY)}")
+        changed = tuple((name, float(weights.get(name, value))) for name, value in self.weights)
+        return dataclasses.replace(self, weights=changed)
+
+    def active(self) -> Iterator[LossTerm]:
+        """The registered terms these weights compute."""
+        for name, value in self.weights:
+            if value != 0:
+                yield _REGISTRY[name]
+
+    @property
+    def needs_patches(self) -> bool:
+        return any(term.patches for term in self.active())
 
     @property
     def uses_mixture(self) -> bool:
-        return self.colour_nll or self.depth_nll > 0 or self.regen_nll > 0
+        return any(term.mixture for term in self.active())
+
+
+def needs_patches(loss: LossConfig) -> bool:
+    """Whether `loss` weights a term of the unseen-view patches (which are then drawn)."""
+    return LossWeights.from_config(loss, "mipnerf").needs_patches
+
+
+@dataclasses.dataclass(frozen=True)
+class LossInputs:
+    """What a term may read.
+
+    **Fields:**
+
+    - `outputs`: the render of the training rays (batch shape `(batch,)`).
+    - `model`: the model (its mixture, its field's regulariser).
+    - `rays`: the training rays; `||d||` is the ray-depth target.
+    - `target_rgb`: their true colours.
+    - `weights`: the static weights (and the terms' options: `nll_levels`, `patch_size`).
+    - `patch_outputs`, `patches`: the render of the unseen-view patches and their rays,
+      flattened patch by patch (`None` unless a patch term is weighted).
+    """
+
+    outputs: RenderOutputs
+    model: MixNeRF
+    rays: RayBundle
+    target_rgb: Float[Array, "batch channels"]
+    weights: LossWeights
+    patch_outputs: RenderOutputs | None = None
+    patches: RayBundle | None = None
+
+    @property
+    def both_levels(self) -> tuple[LevelOutputs, LevelOutputs]:
+        return (self.outputs.coarse, self.outputs.fine)
+
+    @property
+    def nll_levels(self) -> tuple[LevelOutputs, ...]:
+        coarse = self.weights.nll_levels == "coarse"
+        return (self.outputs.coarse,) if coarse else self.both_levels
 
 
 class LossTerms(eqx.Module):
     """The terms of one step's loss, averaged over rays (zero where not computed).
 
-    `mse_fine` and `mse_coarse` are per-element mean squared errors (over rays and
-    channels), the quantity PSNR is defined on. The objective uses the squared error summed
-    over the channels and averaged over rays (the paper's `||c_hat - c||^2`, and the released
-    code), which is `channels` times larger: `total` holds that.
+    `terms["mse_fine"]` and `terms["mse_coarse"]` are per-element mean squared errors (over
+    rays and channels), the quantity PSNR is defined on. The objective uses the squared error
+    summed over the channels and averaged over rays (the paper's `||c_hat - c||^2`, and the
+    released code), which is `channels` times larger: `total` holds that.
     """
 
     total: Float[Array, ""]
-    mse_fine: Float[Array, ""]
-    mse_coarse: Float[Array, ""]
-    nll_colour: Float[Array, ""]
-    nll_depth: Float[Array, ""]
-    nll_regen: Float[Array, ""]
-    regulariser: Float[Array, ""]
-    distortion: Float[Array, ""]
-    opacity: Float[Array, ""]
-    opacity_entropy: Float[Array, ""]
-    unseen_entropy: Float[Array, ""]
-    smoothness: Float[Array, ""]
+    values: dict[str, Float[Array, ""]]
+
+    def __getitem__(self, name: str) -> Float[Array, ""]:
+        return self.values[name]
 
 
 def opacity_entropy(acc: Float[Array, "*batch"], eps: float = 1e-4) -> Float[Array, ""]:
@@ -108,112 +214,6 @@ def opacity_entropy(acc: Float[Array, "*batch"], eps: float = 1e-4) -> Float[Arr
     """
     a = jnp.clip(acc, eps, 1.0 - eps)
     return jnp.mean(-(a * jnp.log(a) + (1.0 - a) * jnp.log1p(-a)))
-
-
-def _level_nlls(
-    model: MixNeRF,
-    level: LevelOutputs,
-    target_rgb: Float[Array, "batch channels"],
-    direction_norm: Float[Array, "batch"],
-    weights: LossWeights,
-) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
-    mixture = model.mixture
-    outputs = level.field
-    zero = jnp.zeros((), target_rgb.dtype)
-    if mixture is None or outputs.beta is None or outputs.ray_depth is None:
-        raise ValueError("the mixture losses need a model with a mixture and mixture heads")
-    nll_colour = nll_depth = nll_regen = zero
-    if weights.colour_nll:
-        nll_colour = jnp.mean(
-            jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, target_rgb)
-        )
-    if weights.depth_nll > 0:
-        nll_depth = jnp.mean(
-            jax.vmap(mixture.depth_nll)(level.weights, outputs.ray_depth, outputs.beta, direction_norm)
-        )
-    if weights.regen_nll > 0:
-        # Eq. 8: the same densities composited with the predicted ray depth in place of ||d||.
-        regen_weights = jax.vmap(blend_weights)(outputs.density, level.t_edges, outputs.ray_depth)
-        nll_regen = jnp.mean(
-            jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, target_rgb)
-        )
-    return nll_colour, nll_depth, nll_regen
-
-
-def loss_terms(
-    outputs: RenderOutputs,
-    model: MixNeRF,
-    rays: RayBundle,
-    target_rgb: Float[Array, "batch channels"],
-    lambda_colour: Float[Array, ""],
-    weights: LossWeights,
-) -> LossTerms:
-    """All terms of `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C + R + P`.
-
-    `R` is the field's own regulariser (a grid's total variation; 0 for the MLP field). `P`
-    holds the optional priors on the weights, all off in the paper's configs: the distortion
-    loss, the mean opacity and the opacity's binary entropy, each summed over the two levels and
-    averaged over rays (the unseen-view priors are added by `loss_fn`).
-
-    `MSE = mean_rays ||rgb_fine - c||^2 + coarse_mse * mean_rays ||rgb_coarse - c||^2`, the
-    squared error summed over the colour channels (paper eq. 11; the released `train.py`
-    divides the sum over rays and channels by the number of rays). The NLLs are means over
-    rays, on the coarse level unless `weights.nll_levels` says both.
-
-    **Arguments:**
-
-    - `outputs`: the model's render of `rays` (batch shape `(batch,)`).
-    - `model`: the model (for its mixture).
-    - `rays`: the rays; `||d||` is the ray-depth target.
-    - `target_rgb`: ground-truth colours.
-    - `lambda_colour`: lambda_C at this step.
-    - `weights`: the static weights.
-    """
-    channels = target_rgb.shape[-1]
-    mse_fine = jnp.mean((outputs.fine.rgb - target_rgb) ** 2)
-    mse_coarse = jnp.mean((outputs.coarse.rgb - target_rgb) ** 2)
-    regulariser = model.field.regulariser()
-    # ||c_hat - c||^2 summed over the channels, averaged over rays: `channels` per-element MSEs.
-    total = channels * (mse_fine + weights.coarse_mse * mse_coarse) + regulariser
-    zero = jnp.zeros((), mse_fine.dtype)
-    distortion_term = opacity_term = entropy_term = zero
-    both_levels = (outputs.coarse, outputs.fine)
-    if weights.distortion > 0:
-        for level in both_levels:
-            distortion_term = distortion_term + jnp.mean(
-                jax.vmap(distortion)(level.weights, level.t_edges, rays.near[:, 0], rays.far[:, 0])
-            )
-        total = total + weights.distortion * distortion_term
-    if weights.opacity > 0:
-        opacity_term = sum(jnp.mean(level.acc) for level in both_levels)
-        total = total + weights.opacity * opacity_term
-    if weights.opacity_entropy > 0:
-        entropy_term = sum(opacity_entropy(level.acc) for level in both_levels)
-        total = total + weights.opacity_entropy * entropy_term
-    nll_colour = nll_depth = nll_regen = zero
-    if weights.uses_mixture:
-        direction_norm = jnp.linalg.norm(rays.directions, axis=-1)
-        levels = [outputs.coarse] if weights.nll_levels == "coarse" else [outputs.coarse, outputs.fine]
-        for level in levels:
-            colour, depth, regen = _level_nlls(model, level, target_rgb, direction_norm, weights)
-            nll_colour, nll_depth, nll_regen = nll_colour + colour, nll_depth + depth, nll_regen + regen
-        total = (
-            total + lambda_colour * nll_colour + weights.depth_nll * nll_depth + weights.regen_nll * nll_regen
-        )
-    return LossTerms(
-        total=total,
-        mse_fine=mse_fine,
-        mse_coarse=mse_coarse,
-        nll_colour=nll_colour,
-        nll_depth=nll_depth,
-        nll_regen=nll_regen,
-        regulariser=regulariser,
-        distortion=distortion_term,
-        opacity=opacity_term,
-        opacity_entropy=entropy_term,
-        unseen_entropy=zero,
-        smoothness=zero,
-    )
 
 
 def depth_smoothness(outputs: RenderOutputs, rays: RayBundle, patch_size: int) -> Float[Array, ""]:
@@ -239,6 +239,160 @@ def depth_smoothness(outputs: RenderOutputs, rays: RayBundle, patch_size: int) -
     return total
 
 
+def _summed(values) -> Float[Array, ""]:
+    """The sum of `values`, from zero, in order."""
+    return sum(values, 0.0)
+
+
+def _mixture_of(inputs: LossInputs, level: LevelOutputs):
+    mixture, outputs = inputs.model.mixture, level.field
+    if mixture is None or outputs.beta is None or outputs.ray_depth is None:
+        raise ValueError("the mixture losses need a model with a mixture and mixture heads")
+    return mixture, outputs
+
+
+def _nll_colour(inputs: LossInputs) -> Float[Array, ""]:
+    """NLL_C (eq. 7): the colour's mixture NLL under the rendered weights."""
+
+    def level_nll(level):
+        mixture, outputs = _mixture_of(inputs, level)
+        nll = jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, inputs.target_rgb)
+        return jnp.mean(nll)
+
+    return _summed(level_nll(level) for level in inputs.nll_levels)
+
+
+def _nll_depth(inputs: LossInputs) -> Float[Array, ""]:
+    """NLL_D (eq. 9): the ray depth `||d||`'s mixture NLL."""
+    direction_norm = jnp.linalg.norm(inputs.rays.directions, axis=-1)
+
+    def level_nll(level):
+        mixture, outputs = _mixture_of(inputs, level)
+        nll = jax.vmap(mixture.depth_nll)(level.weights, outputs.ray_depth, outputs.beta, direction_norm)
+        return jnp.mean(nll)
+
+    return _summed(level_nll(level) for level in inputs.nll_levels)
+
+
+def _nll_regen(inputs: LossInputs) -> Float[Array, ""]:
+    """NLL_hat_C (eq. 8): the same densities composited with the predicted ray depth in
+    place of `||d||`, and the colour's NLL under those weights."""
+
+    def level_nll(level):
+        mixture, outputs = _mixture_of(inputs, level)
+        regen_weights = jax.vmap(blend_weights)(outputs.density, level.t_edges, outputs.ray_depth)
+        nll = jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, inputs.target_rgb)
+        return jnp.mean(nll)
+
+    return _summed(level_nll(level) for level in inputs.nll_levels)
+
+
+def _distortion(inputs: LossInputs) -> Float[Array, ""]:
+    near, far = inputs.rays.near[:, 0], inputs.rays.far[:, 0]
+    return _summed(
+        jnp.mean(jax.vmap(distortion)(level.weights, level.t_edges, near, far))
+        for level in inputs.both_levels
+    )
+
+
+def _unseen_entropy(inputs: LossInputs) -> Float[Array, ""]:
+    patches = inputs.patch_outputs
+    return _summed(opacity_entropy(level.acc) for level in (patches.coarse, patches.fine))
+
+
+# The paper's objective (eq. 11), then the optional priors on the weights (all off in the
+# paper's configs), each summed over the two levels and averaged over rays or patches.
+for _term in (
+    LossTerm(
+        "mse_fine",
+        lambda inputs: jnp.mean((inputs.outputs.fine.rgb - inputs.target_rgb) ** 2),
+        per_channel=True,
+    ),
+    LossTerm(
+        "mse_coarse",
+        lambda inputs: jnp.mean((inputs.outputs.coarse.rgb - inputs.target_rgb) ** 2),
+        weight="coarse_mse_weight",
+        per_channel=True,
+    ),
+    LossTerm("regulariser", lambda inputs: inputs.model.field.regulariser()),
+    LossTerm("distortion", _distortion, weight="distortion_weight"),
+    LossTerm(
+        "opacity",
+        lambda inputs: _summed(jnp.mean(level.acc) for level in inputs.both_levels),
+        weight="opacity_weight",
+    ),
+    LossTerm(
+        "opacity_entropy",
+        lambda inputs: _summed(opacity_entropy(level.acc) for level in inputs.both_levels),
+        weight="opacity_entropy_weight",
+    ),
+    LossTerm("nll_colour", _nll_colour, weight="lambda_colour", mixture=True, scheduled=True),
+    LossTerm("nll_depth", _nll_depth, weight="lambda_depth", mixture=True),
+    LossTerm("nll_regen", _nll_regen, weight="lambda_regen", mixture=True),
+    LossTerm(
+        "smoothness",
+        lambda inputs: depth_smoothness(inputs.patch_outputs, inputs.patches, inputs.weights.patch_size),
+        weight="depth_smoothness_weight",
+        patches=True,
+    ),
+    LossTerm("unseen_entropy", _unseen_entropy, weight="unseen_entropy_weight", patches=True),
+):
+    register_loss_term(_term)
+
+
+def loss_terms(
+    outputs: RenderOutputs,
+    model: MixNeRF,
+    rays: RayBundle,
+    target_rgb: Float[Array, "batch channels"],
+    lambda_colour: Float[Array, ""],
+    weights: LossWeights,
+    *,
+    patch_outputs: RenderOutputs | None = None,
+    patches: RayBundle | None = None,
+) -> LossTerms:
+    """Every registered term, and their weighted sum: by default
+    `L = MSE + lambda_C NLL_C + lambda_D NLL_D + lambda_hat_C NLL_hat_C + R + P`.
+
+    `R` is the field's own regulariser (a grid's total variation; 0 for the MLP field). `P`
+    holds the optional priors on the weights, all off in the paper's configs: the distortion
+    loss, the mean opacity and the opacity's binary entropy, each summed over the two levels
+    and averaged over rays, and the unseen-view priors on `patches`.
+
+    `MSE = mean_rays ||rgb_fine - c||^2 + coarse_mse * mean_rays ||rgb_coarse - c||^2`, the
+    squared error summed over the colour channels (paper eq. 11; the released `train.py`
+    divides the sum over rays and channels by the number of rays). The NLLs are means over
+    rays, on the coarse level unless `weights.nll_levels` says both.
+
+    **Arguments:**
+
+    - `outputs`: the model's render of `rays` (batch shape `(batch,)`).
+    - `model`: the model (for its mixture).
+    - `rays`: the rays; `||d||` is the ray-depth target.
+    - `target_rgb`: ground-truth colours.
+    - `lambda_colour`: the scheduled weight at this step (lambda_C).
+    - `weights`: the static weights.
+    - `patch_outputs`, `patches`: the unseen-view patches' render and rays (needed where a
+      patch term is weighted).
+    """
+    inputs = LossInputs(outputs, model, rays, target_rgb, weights, patch_outputs, patches)
+    channels = target_rgb.shape[-1]
+    zero = jnp.zeros((), outputs.fine.rgb.dtype)
+    values = {name: zero for name, _ in weights.weights}
+    active = list(weights.active())
+    if any(term.patches for term in active) and patch_outputs is None:
+        raise ValueError("a term of the unseen-view patches is weighted, but no patches were rendered")
+    for term in active:
+        values[term.name] = term.compute(inputs)
+    # The squared errors first, summed over the channels; then the rest, in order.
+    total = channels * _summed(weights[term.name] * values[term.name] for term in active if term.per_channel)
+    for term in active:
+        if not term.per_channel:
+            weight = lambda_colour if term.scheduled else weights[term.name]
+            total = total + weight * values[term.name]
+    return LossTerms(total=total, values=values)
+
+
 def loss_fn(
     model: MixNeRF,
     rays: RayBundle,
@@ -249,29 +403,24 @@ def loss_fn(
     key: PRNGKey,
     patches: RayBundle | None = None,
 ) -> tuple[Float[Array, ""], LossTerms]:
-    """Renders `rays` (and the unseen-view `patches`, in the same pass) in training mode and
-    returns `(total loss, terms)`, with the priors on the patches (depth smoothness, opacity
-    entropy) added where their weights are positive."""
-    if patches is None or (weights.smoothness == 0 and weights.unseen_entropy == 0):
-        outputs = model(rays, key=key)
-        terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
+    """Renders `rays` (and the unseen-view `patches`, in the same pass, where a patch term is
+    weighted) in training mode and returns `(total loss, terms)`."""
+    if patches is None or not weights.needs_patches:
+        terms = loss_terms(model(rays, key=key), model, rays, target_rgb, lambda_colour, weights)
         return terms.total, terms
     count = rays.batch_shape[0]
     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), rays, patches)
     rendered = model(both, key=key)
     outputs = jax.tree_util.tree_map(lambda leaf: leaf[:count], rendered)
     patch_outputs = jax.tree_util.tree_map(lambda leaf: leaf[count:], rendered)
-    terms = loss_terms(outputs, model, rays, target_rgb, lambda_colour, weights)
-    zero = jnp.zeros_like(terms.total)
-    smoothness = unseen_entropy = zero
-    if weights.smoothness > 0:
-        smoothness = depth_smoothness(patch_outputs, patches, weights.patch_size)
-    if weights.unseen_entropy > 0:
-        unseen_entropy = sum(
-            opacity_entropy(level.acc) for level in (patch_outputs.coarse, patch_outputs.fine)
-        )
-    total = terms.total + weights.smoothness * smoothness + weights.unseen_entropy * unseen_entropy
-    terms = eqx.tree_at(
-        lambda t: (t.total, t.smoothness, t.unseen_entropy), terms, (total, smoothness, unseen_entropy)
+    terms = loss_terms(
+        outputs,
+        model,
+        rays,
+        target_rgb,
+        lambda_colour,
+        weights,
+        patch_outputs=patch_outputs,
+        patches=patches,
     )
     return terms.total, terms

@@ -79,9 +79,7 @@ def _due(done: int, every: int) -> bool:
 
 def _scalars(metrics: StepMetrics) -> dict[str, float]:
     terms = metrics.terms
-    names = ("total", "mse_fine", "mse_coarse", "nll_colour", "nll_depth", "nll_regen", "regulariser")
-    names += ("distortion", "opacity", "opacity_entropy", "unseen_entropy", "smoothness")
-    values = {("loss" if name == "total" else name): float(getattr(terms, name)) for name in names}
+    values = {"loss": float(terms.total), **{name: float(value) for name, value in terms.values.items()}}
     values.update(
         psnr=float(metrics.psnr), lr=float(metrics.learning_rate), lambda_colour=float(metrics.lambda_colour)
     )

@@ -20,7 +20,7 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from ._camera_path import orbit_path, spiral_path
 from ._config import Config, LossConfig, OccupancyConfig, OptimConfig, schedule_steps
 from ._custom_types import PoseStack, PRNGKey
-from ._loss import LossTerms, LossWeights, loss_fn
+from ._loss import LossTerms, LossWeights, loss_fn, needs_patches
 from ._model import MixNeRF, build_model
 from ._occupancy import OccupancyGrid, empty_grid, frustum_box, update_occupancy
 from ._rays import RayBundle
@@ -206,7 +206,7 @@ def training_rays(dataset: Dataset, loss: LossConfig | None = None) -> TrainingR
     rays = rays_for_views(views, dataset.near, dataset.far)
     num_pixels = views.height * views.width
     patches, per_step = None, 0
-    if loss is not None and (loss.depth_smoothness_weight > 0 or loss.unseen_entropy_weight > 0):
+    if loss is not None and needs_patches(loss):
         patches = unseen_patches(dataset, loss.smoothness_views, loss.smoothness_patch_size)
         per_step = loss.smoothness_patches
     return TrainingRays(
@@ -321,7 +321,7 @@ def make_train_step(
         )
         metrics = StepMetrics(
             terms=terms,
-            psnr=-10.0 * jnp.log10(terms.mse_fine),
+            psnr=-10.0 * jnp.log10(terms["mse_fine"]),
             learning_rate=state.learning_rate(step_number),
             lambda_colour=lambda_colour,
             skipped=~finite,

@@ -314,7 +314,7 @@ def test_the_quick_starts_settings_reach_its_baseline():
     comparison), and a field built from either samples the frustum's mean only."""
     configs = [mx.load_config(name) for name in ("builtin_grid", "builtin_mipnerf_grid")]
     weights = [LossWeights.from_config(config.loss, config.method) for config in configs]
-    assert [w.opacity_entropy for w in weights] == [0.01, 0.01]
+    assert [w["opacity_entropy"] for w in weights] == [0.01, 0.01]
     assert not weights[1].uses_mixture  # the baseline: no mixture term, the same prior
     for config in configs:
         assert mx.build_model(config, key=jax.random.key(0)).field.scale_weighting is False

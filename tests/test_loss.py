@@ -8,6 +8,7 @@ per-sample ray depth in place of `||d||`. It shares no code with the package.
 """
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -16,6 +17,7 @@ import pytest
 from helpers import as_f32, as_f64
 
 import mixnerf_eqx as mx
+from mixnerf_eqx._config import LossConfig
 from mixnerf_eqx._field import FieldOutputs
 from mixnerf_eqx._loss import LossWeights, loss_terms, opacity_entropy
 from mixnerf_eqx._model import RenderOutputs
@@ -131,9 +133,8 @@ def mixnerf_model():
 
 
 def _package_terms(model, levels, target, directions, lambdas, nll_levels="coarse"):
-    weights = LossWeights(
-        coarse_mse=0.1, colour_nll=True, depth_nll=lambdas[1], regen_nll=lambdas[2], nll_levels=nll_levels
-    )
+    loss = LossConfig(lambda_depth=lambdas[1], lambda_regen=lambdas[2], nll_levels=nll_levels)
+    weights = LossWeights.from_config(loss, "mixnerf")
     return loss_terms(
         _as_outputs(levels),
         model,
@@ -170,9 +171,9 @@ def test_a_known_input_gives_the_written_out_loss(mixnerf_model):
     terms = _package_terms(mixnerf_model, levels, target, directions, lambdas)
     assert float(terms.total) == pytest.approx(written_out, rel=2e-6)
     # The MSE terms the package logs are per-element means: a third of the summed error.
-    assert float(terms.mse_fine) == pytest.approx(sse["fine"] / 3, rel=1e-6)
-    assert float(terms.mse_coarse) == pytest.approx(sse["coarse"] / 3, rel=1e-6)
-    np.testing.assert_allclose([terms.nll_colour, terms.nll_depth, terms.nll_regen], nll, rtol=2e-6)
+    assert float(terms["mse_fine"]) == pytest.approx(sse["fine"] / 3, rel=1e-6)
+    assert float(terms["mse_coarse"]) == pytest.approx(sse["coarse"] / 3, rel=1e-6)
+    np.testing.assert_allclose([terms["nll_colour"], terms["nll_depth"], terms["nll_regen"]], nll, rtol=2e-6)
 
 
 @pytest.mark.parametrize("nll_levels", ["coarse", "both"])
@@ -191,9 +192,9 @@ def test_the_objective_matches_the_released_arithmetic(mixnerf_model, seed, nll_
     total, sse, nll = _ref_objective(levels, target, directions, lambdas, nll_levels=nll_levels)
     terms = _package_terms(mixnerf_model, levels, target, directions, lambdas, nll_levels)
     assert float(terms.total) == pytest.approx(total, rel=1e-5)
-    assert 3 * float(terms.mse_fine) == pytest.approx(sse["fine"], rel=1e-5)
+    assert 3 * float(terms["mse_fine"]) == pytest.approx(sse["fine"], rel=1e-5)
     np.testing.assert_allclose(
-        [terms.nll_colour, terms.nll_depth, terms.nll_regen], nll, rtol=1e-5, atol=1e-5
+        [terms["nll_colour"], terms["nll_depth"], terms["nll_regen"]], nll, rtol=1e-5, atol=1e-5
     )
 
 
@@ -210,14 +211,14 @@ def test_the_baseline_objective_is_the_summed_squared_error(mixnerf_model):
         _rays(directions),
         jnp.asarray(as_f32(target)),
         jnp.asarray(0.0),
-        dataclasses.replace(LossWeights(), colour_nll=False, depth_nll=0.0, regen_nll=0.0),
+        LossWeights.from_config(LossConfig(), "mipnerf"),
     )
     expected = sum(
         mult * np.sum((levels[name]["rgb"] - target) ** 2) / 8
         for name, mult in (("fine", 1.0), ("coarse", 0.1))
     )
     assert float(terms.total) == pytest.approx(expected, rel=1e-6)
-    assert float(terms.nll_colour) == float(terms.nll_depth) == float(terms.nll_regen) == 0.0
+    assert float(terms["nll_colour"]) == float(terms["nll_depth"]) == float(terms["nll_regen"]) == 0.0
 
 
 def _ref_distortion_double_integral(weights, t_edges, near, far, points_per_interval=400):
@@ -292,13 +293,13 @@ def test_the_priors_on_the_weights_add_their_weighted_terms(mixnerf_model, metho
     expected_opacity = sum(levels[name]["weights"].sum() for name in ("coarse", "fine")) / 8
     opacities = [np.clip(levels[name]["weights"].sum(-1), 1e-4, 1 - 1e-4) for name in ("coarse", "fine")]
     expected_entropy = sum(np.mean(-(a * np.log(a) + (1 - a) * np.log(1 - a))) for a in opacities)
-    assert float(priors.distortion) == pytest.approx(expected_distortion, rel=1e-4)
-    assert float(priors.opacity) == pytest.approx(expected_opacity, rel=1e-5)
-    assert float(priors.opacity_entropy) == pytest.approx(expected_entropy, rel=1e-5)
+    assert float(priors["distortion"]) == pytest.approx(expected_distortion, rel=1e-4)
+    assert float(priors["opacity"]) == pytest.approx(expected_opacity, rel=1e-5)
+    assert float(priors["opacity_entropy"]) == pytest.approx(expected_entropy, rel=1e-5)
     assert float(priors.total - plain.total) == pytest.approx(
         0.3 * expected_distortion + 0.02 * expected_opacity + 0.05 * expected_entropy, rel=1e-4
     )
-    assert float(plain.distortion) == float(plain.opacity) == float(plain.opacity_entropy) == 0.0
+    assert float(plain["distortion"]) == float(plain["opacity"]) == float(plain["opacity_entropy"]) == 0.0
 
 
 def test_opacity_entropy_is_zero_at_empty_and_opaque_and_log2_at_half():
@@ -312,3 +313,57 @@ def test_opacity_entropy_is_zero_at_empty_and_opaque_and_log2_at_half():
     grad = np.asarray(jax.grad(lambda a: opacity_entropy(a) * a.size)(jnp.asarray([0.1, 0.9, 1.0])))
     np.testing.assert_allclose(grad[:2], [np.log(9.0), -np.log(9.0)], rtol=1e-5)
     assert grad[2] == 0.0  # clipped: an opaque ray is left alone
+
+
+@dataclasses.dataclass(frozen=True)
+class _LossWithDummy(LossConfig):
+    """`[loss]` with the one line a new term adds: its weight."""
+
+    dummy_weight: float = 0.0
+
+
+@pytest.fixture
+def dummy_term():
+    """A term registered for one test: the mean squared opacity of the fine level."""
+    term = mx.LossTerm("dummy", lambda inputs: jnp.mean(inputs.outputs.fine.acc**2), weight="dummy_weight")
+    mx.register_loss_term(term)
+    yield term
+    mx.unregister_loss_term("dummy")
+    assert "dummy" not in mx.loss_term_names()
+
+
+def test_a_registered_term_is_weighted_logged_and_range_checked(mixnerf_model, tiny_config, dummy_term):
+    assert mx.loss_term_names()[-1] == "dummy"
+    loss = _LossWithDummy(**dataclasses.asdict(tiny_config.loss))
+    # Range-checked: its weight is one of the `[loss]` weights, each at least 0.
+    with pytest.raises(mx.ConfigError, match=r"loss\.dummy_weight must be >= 0, got -0\.5"):
+        dataclasses.replace(tiny_config, loss=dataclasses.replace(loss, dummy_weight=-0.5))
+    with pytest.raises(ValueError, match="already registered"):
+        mx.register_loss_term(dummy_term)
+    # Weighted: it enters the total with its weight, and a zero weight computes nothing.
+    rng = np.random.default_rng(7)
+    directions = np.tile([[0.0, 0.0, -1.0]], (8, 1))
+    levels = {name: _random_level(rng, 8, 6, np.ones(8), np.ones(3)) for name in ("coarse", "fine")}
+    target = jnp.asarray(as_f32(rng.uniform(0, 1, (8, 3))))
+
+    def terms_with(weight):
+        weights = LossWeights.from_config(dataclasses.replace(loss, dummy_weight=weight), "mixnerf")
+        return loss_terms(
+            _as_outputs(levels), mixnerf_model, _rays(directions), target, jnp.asarray(1.0), weights
+        )
+
+    expected = np.mean(np.sum(levels["fine"]["weights"], axis=-1) ** 2)
+    off, on = terms_with(0.0), terms_with(0.25)
+    assert float(off["dummy"]) == 0.0
+    assert float(on["dummy"]) == pytest.approx(expected, rel=1e-6)
+    assert float(on.total - off.total) == pytest.approx(0.25 * expected, rel=1e-4)
+    # Logged: the training log's entries carry it.
+    config = dataclasses.replace(
+        tiny_config,
+        loss=dataclasses.replace(loss, dummy_weight=0.25),
+        train=dataclasses.replace(tiny_config.train, max_steps=3, checkpoint_every=0),
+    )
+    result = mx.fit(config, progress=False)
+    entries = [json.loads(line) for line in (result.run_dir / "train_log.jsonl").read_text().splitlines()]
+    steps = [entry for entry in entries if "loss" in entry]
+    assert steps and all(0 < entry["dummy"] <= 1 for entry in steps)

@@ -144,18 +144,18 @@ def test_a_step_with_the_prior_draws_patches_and_reports_the_term(smooth_setup):
     assert batch.patches is not None and batch.patches.batch_shape == (2 * 4 * 4,)
     step = make_train_step(config)
     new_state, metrics = step(state, batch)
-    assert float(metrics.terms.smoothness) > 0
+    assert float(metrics.terms["smoothness"]) > 0
     assert np.isfinite(float(metrics.terms.total)) and not bool(metrics.skipped)
     # The prior enters the total with its weight: the total less every other weighted term
     # (the objective of test_loss.py) is the smoothness term.
     terms, weights = metrics.terms, config.loss
     others = (
-        3 * (terms.mse_fine + weights.coarse_mse_weight * terms.mse_coarse)
-        + metrics.lambda_colour * terms.nll_colour
-        + weights.lambda_depth * terms.nll_depth
-        + weights.lambda_regen * terms.nll_regen
+        3 * (terms["mse_fine"] + weights.coarse_mse_weight * terms["mse_coarse"])
+        + metrics.lambda_colour * terms["nll_colour"]
+        + weights.lambda_depth * terms["nll_depth"]
+        + weights.lambda_regen * terms["nll_regen"]
     )
-    smoothness = weights.depth_smoothness_weight * float(terms.smoothness)
+    smoothness = weights.depth_smoothness_weight * float(terms["smoothness"])
     assert float(terms.total - others) == pytest.approx(smoothness, rel=1e-3), float(terms.total)
     assert int(new_state.step) == 1
     # Without the prior no patches are drawn.
@@ -179,13 +179,13 @@ def test_the_unseen_entropy_alone_draws_patches_and_enters_with_its_weight():
     _, metrics = make_train_step(config)(state, batch)
     terms, weights = metrics.terms, config.loss
     # Each level's mean entropy lies in (0, log 2]; the smoothness term is not computed.
-    assert 0 < float(terms.unseen_entropy) <= 2 * np.log(2.0) + 1e-6
-    assert float(terms.smoothness) == 0.0 and float(terms.opacity_entropy) == 0.0
+    assert 0 < float(terms["unseen_entropy"]) <= 2 * np.log(2.0) + 1e-6
+    assert float(terms["smoothness"]) == 0.0 and float(terms["opacity_entropy"]) == 0.0
     others = (
-        3 * (terms.mse_fine + weights.coarse_mse_weight * terms.mse_coarse)
-        + metrics.lambda_colour * terms.nll_colour
-        + weights.lambda_depth * terms.nll_depth
-        + weights.lambda_regen * terms.nll_regen
+        3 * (terms["mse_fine"] + weights.coarse_mse_weight * terms["mse_coarse"])
+        + metrics.lambda_colour * terms["nll_colour"]
+        + weights.lambda_depth * terms["nll_depth"]
+        + weights.lambda_regen * terms["nll_regen"]
     )
-    expected = 0.5 * float(terms.unseen_entropy)
+    expected = 0.5 * float(terms["unseen_entropy"])
     assert float(terms.total - others) == pytest.approx(expected, rel=1e-3), float(terms.total)
