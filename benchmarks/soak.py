@@ -98,7 +98,12 @@ def in_python_imports(status: int, stderr: str) -> bool:
     code of the run has started, and Python ends with its own KeyboardInterrupt traceback and
     the default SIGINT exit."""
     lines = stderr.strip().splitlines()
-    return status == -signal.SIGINT and bool(lines) and lines[-1] == "KeyboardInterrupt" and "importlib._bootstrap" in stderr
+    return (
+        status == -signal.SIGINT
+        and bool(lines)
+        and lines[-1] == "KeyboardInterrupt"
+        and "importlib._bootstrap" in stderr
+    )
 
 
 def what_it_was_doing(before: list[dict], after: list[dict], status: int, stderr: str) -> str:
@@ -119,7 +124,10 @@ def state_leaves(run_dir: Path) -> list[np.ndarray]:
     """Every array of the run's final state (parameters, optimiser state, key, step)."""
     run = mx.restore_run(run_dir)
     leaves = jax.tree_util.tree_leaves(eqx.filter(run.state, eqx.is_array))
-    return [np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x) for x in leaves]
+    return [
+        np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)
+        for x in leaves
+    ]
 
 
 def stop_window(start_s: float, steps_per_s: float, steps: int, rounds: int) -> float:
@@ -137,7 +145,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=50, help="stops before the run is let finish")
     parser.add_argument("--steps", type=int, default=5000, help="train.max_steps of the run")
     parser.add_argument("--eval-every", type=int, default=500, help="train.eval_every of the run")
-    parser.add_argument("--max-wait", type=float, default=None, help="latest stop, s after a start (default: measured)")
+    parser.add_argument(
+        "--max-wait", type=float, default=None, help="latest stop, s after a start (default: measured)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the stop times and signals")
     parser.add_argument("--out", default=None, help="result file (default results/soak_<backend>.json)")
     args = parser.parse_args()
@@ -164,7 +174,11 @@ def main() -> None:
     warm_up.wait()
     started = time.perf_counter()
     process = subprocess.Popen(
-        train_command(reference, args.steps, args.eval_every), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        train_command(reference, args.steps, args.eval_every),
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     first_entry_s = None
     while process.poll() is None:
@@ -178,7 +192,11 @@ def main() -> None:
     rates = [entry["steps_per_s"] for entry in log_steps(reference) if entry.get("steps_per_s")]
     steps_per_s = sorted(rates)[len(rates) // 2]
     start_s = first_entry_s - 10 / steps_per_s  # the first entry is logged at step 10
-    max_wait = args.max_wait if args.max_wait is not None else start_s + stop_window(start_s, steps_per_s, args.steps, args.rounds)
+    max_wait = (
+        args.max_wait
+        if args.max_wait is not None
+        else start_s + stop_window(start_s, steps_per_s, args.steps, args.rounds)
+    )
     print(
         f"uninterrupted run: {reference_s:.1f} s, start-up {start_s:.1f} s, {steps_per_s:.0f} steps/s; "
         f"stops at uniform times up to {max_wait:.1f} s after each start",
@@ -212,7 +230,9 @@ def main() -> None:
             "wait_s": round(wait, 2),
             "signal": None if finished_by_itself else signal.Signals(which).name,
             "status": process.returncode,
-            "phase": "finished" if finished_by_itself else what_it_was_doing(before, after, process.returncode, stderr),
+            "phase": "finished"
+            if finished_by_itself
+            else what_it_was_doing(before, after, process.returncode, stderr),
             "last_logged_step_before": before[-1]["step"] if before else None,
             "last_logged_step_after": after[-1]["step"] if after else None,
             "traceback": "Traceback" in stderr and not in_python_imports(process.returncode, stderr),
@@ -224,7 +244,9 @@ def main() -> None:
         if finished_by_itself:
             # The run finished before this stop: train a fresh folder from scratch for the rest.
             break
-    final = subprocess.run(train_command(soaked, args.steps, args.eval_every), env=env, capture_output=True, text=True)
+    final = subprocess.run(
+        train_command(soaked, args.steps, args.eval_every), env=env, capture_output=True, text=True
+    )
     soak_s = time.perf_counter() - soak_started
     if final.returncode != 0:
         raise SystemExit(f"the final start failed:\n{final.stderr[-3000:]}")
@@ -235,7 +257,9 @@ def main() -> None:
     want_metrics = json.loads((reference / "metrics.json").read_text())["test"]
     got_metrics = json.loads((soaked / "metrics.json").read_text())["test"]
     leftovers = sorted(
-        str(path.relative_to(soaked)) for path in soaked.rglob("*") if "partial" in path.name or "staging" in path.name
+        str(path.relative_to(soaked))
+        for path in soaked.rglob("*")
+        if "partial" in path.name or "staging" in path.name
     )
 
     def losses(log):
@@ -253,7 +277,8 @@ def main() -> None:
         "test metrics equal": want_metrics == got_metrics,
         "one log entry per logged step and evaluation": once_each([step for step, _ in losses(got_log)])
         and once_each([step for step, _ in evaluations(got_log)]),
-        "same logged steps, losses and evaluations as the uninterrupted run": losses(want_log) == losses(got_log)
+        "same logged steps, losses and evaluations as the uninterrupted run": losses(want_log)
+        == losses(got_log)
         and evaluations(want_log) == evaluations(got_log),
         "every stop ended with 130 or by the kill (or in Python's imports or shut-down)": all(
             row["status"] in expected_status or row["phase"] in ("imports", "shutdown")
@@ -268,7 +293,10 @@ def main() -> None:
         "stops": len(stops),
         "SIGINT": sum(row["signal"] == "SIGINT" for row in stops),
         "SIGKILL": sum(row["signal"] == "SIGKILL" for row in stops),
-        "by_phase": {phase: sum(row["phase"] == phase for row in stops) for phase in sorted({r["phase"] for r in stops})},
+        "by_phase": {
+            phase: sum(row["phase"] == phase for row in stops)
+            for phase in sorted({r["phase"] for r in stops})
+        },
         "finished_before_a_stop": any(row["signal"] is None for row in rounds),
         "uninterrupted_s": round(reference_s, 1),
         "start_up_s": round(start_s, 1),
@@ -284,7 +312,10 @@ def main() -> None:
     harness.print_table(("check", "holds"), [(name, "yes" if ok else "NO") for name, ok in checks.items()])
     print(json.dumps(summary, indent=2))
     out = Path(args.out) if args.out else harness.RESULTS / f"soak_{harness.platform_tag()}.json"
-    harness.write_json(out, {"steps": args.steps, "rounds": args.rounds, "checks": checks, "summary": summary, "stops": rounds})
+    harness.write_json(
+        out,
+        {"steps": args.steps, "rounds": args.rounds, "checks": checks, "summary": summary, "stops": rounds},
+    )
     if not all(checks.values()):
         raise SystemExit(1)
 

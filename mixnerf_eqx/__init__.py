@@ -73,6 +73,7 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._mixture import AbstractMixture as AbstractMixture
     from ._mixture import LaplaceMixture as LaplaceMixture
     from ._mixture.laplace import laplace_log_density as laplace_log_density
+    from ._model import FIELD_BUILDERS as FIELD_BUILDERS
     from ._model import MixNeRF as MixNeRF
     from ._model import RenderOutputs as RenderOutputs
     from ._model import build_field as build_field

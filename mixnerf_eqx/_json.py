@@ -17,7 +17,9 @@ NON_FINITE_KEY = "non_finite"
 
 def _clean(value: Any, path: str, found: dict[str, str]) -> Any:
     if isinstance(value, dict):
-        return {key: _clean(item, f"{path}.{key}" if path else str(key), found) for key, item in value.items()}
+        return {
+            key: _clean(item, f"{path}.{key}" if path else str(key), found) for key, item in value.items()
+        }
     if isinstance(value, list | tuple):
         return [_clean(item, f"{path}[{index}]", found) for index, item in enumerate(value)]
     if isinstance(value, np.ndarray | np.generic) and np.ndim(value) == 0:

@@ -56,7 +56,9 @@ def hold_folder(folder: str | Path, what: str = "run", option: str = "train.run_
     folder = Path(folder)
     path = folder / LOCK_NAME
     if fcntl is None:  # pragma: no cover
-        warnings.warn(f"no file locks on this system: nothing stops a second writer in {folder}", stacklevel=3)
+        warnings.warn(
+            f"no file locks on this system: nothing stops a second writer in {folder}", stacklevel=3
+        )
         yield path
         return
     handle = open(path, "a+")  # noqa: SIM115 - held open for the block

@@ -6,6 +6,8 @@ pixels (the renderer). The dense render (`__call__`) and the render that skips e
 (`mixnerf_eqx._skipping`) run the same three steps; the second only evaluates fewer samples.
 """
 
+from collections.abc import Callable
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -163,31 +165,32 @@ class MixNeRF(eqx.Module):
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]
 
 
-def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -> AbstractField:
-    """The field `config.model.field` names, with mixture heads for MixNeRF.
-
-    A grid field spans `[-r, r]^3` when `config.grid.box_radius = r > 0` (the scene lies
-    inside; nothing outside), and otherwise `scene_box`, the training frusta's box.
-    """
-    mixture_heads = config.method == "mixnerf"
+def _mlp_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> MipNeRFField:
+    """The paper's field: the mip-NeRF MLP (`[model]`)."""
+    del scene_box  # the MLP's integrated encoding needs no box
     model_cfg = config.model
-    if model_cfg.field == "mlp":
-        return MipNeRFField(
-            width=model_cfg.width,
-            depth=model_cfg.depth,
-            view_width=model_cfg.view_width,
-            skip_layer=model_cfg.skip_layer,
-            min_deg=model_cfg.min_deg,
-            max_deg=model_cfg.max_deg,
-            viewdir_max_deg=model_cfg.viewdir_max_deg,
-            density_noise=model_cfg.density_noise,
-            density_bias=model_cfg.density_bias,
-            rgb_padding=model_cfg.rgb_padding,
-            mixture_heads=mixture_heads,
-            matmul_dtype=model_cfg.matmul_dtype,
-            key=key,
-        )
-    grid = config.grid
+    return MipNeRFField(
+        width=model_cfg.width,
+        depth=model_cfg.depth,
+        view_width=model_cfg.view_width,
+        skip_layer=model_cfg.skip_layer,
+        min_deg=model_cfg.min_deg,
+        max_deg=model_cfg.max_deg,
+        viewdir_max_deg=model_cfg.viewdir_max_deg,
+        density_noise=model_cfg.density_noise,
+        density_bias=model_cfg.density_bias,
+        rgb_padding=model_cfg.rgb_padding,
+        mixture_heads=mixture_heads,
+        matmul_dtype=model_cfg.matmul_dtype,
+        key=key,
+    )
+
+
+def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> GridField:
+    """A grid encoding and a small decoder (`[grid]`; the view encoding, density bias and
+    colour padding from `[model]`). It spans `[-r, r]^3` when `config.grid.box_radius = r > 0`
+    (the scene lies inside; nothing outside), and otherwise `scene_box`."""
+    grid, model_cfg = config.grid, config.model
     if grid.box_radius > 0:
         radius = grid.box_radius
         scene_box, bounded = ((-radius,) * 3, (radius,) * 3), True
@@ -221,6 +224,22 @@ def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -
         lookup=grid.lookup,
         key=decoder_key,
     )
+
+
+# `config.model.field` -> the constructor of that field. A new field is one entry here (and
+# its name in `ModelConfig.field`); `tests/test_field_contract.py` then holds it to the
+# contract every field meets.
+FIELD_BUILDERS: dict[str, Callable[..., AbstractField]] = {"mlp": _mlp_field, "grid": _grid_field}
+
+
+def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -> AbstractField:
+    """The field `config.model.field` names (`FIELD_BUILDERS`), with mixture heads for
+    MixNeRF; `scene_box` is the training frusta's box (a grid field without
+    `grid.box_radius` spans it)."""
+    builder = FIELD_BUILDERS.get(config.model.field)
+    if builder is None:
+        raise ValueError(f"model.field {config.model.field!r} is none of {sorted(FIELD_BUILDERS)}")
+    return builder(config, mixture_heads=config.method == "mixnerf", key=key, scene_box=scene_box)
 
 
 def build_model(

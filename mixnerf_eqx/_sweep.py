@@ -77,7 +77,8 @@ def _check_scene_names(config: Config, scenes: Sequence[str]) -> None:
             continue
         if root is None:
             raise ConfigError(
-                f"unknown {config.data.dataset} scene {scene!r}: the benchmark's scenes are {', '.join(known)}"
+                f"unknown {config.data.dataset} scene {scene!r}: "
+                f"the benchmark's scenes are {', '.join(known)}"
             )
         try:
             find_scene(root, config.data.dataset, scene)
@@ -294,7 +295,8 @@ def format_markdown(table: dict[str, Any]) -> str:
             scene
             for scene in table["scenes"]
             if scene in benchmark
-            and sum(missing.startswith(f"{scene} seed ") for missing in table["missing"]) < len(table["seeds"])
+            and sum(missing.startswith(f"{scene} seed ") for missing in table["missing"])
+            < len(table["seeds"])
         ]
         notes.append(
             f"Only {len(ran)} of the benchmark's {len(benchmark)} scenes were run: the mean "
@@ -326,9 +328,7 @@ def run_local(
         done = finished_metrics(run)
         on_run(index, run, "finished" if done is not None else "running")
         try:
-            results[(run.scene, run.seed)] = (
-                run_one(run.config, progress) if done is None else _kept(done)
-            )
+            results[(run.scene, run.seed)] = run_one(run.config, progress) if done is None else _kept(done)
         except (ConfigError, DatasetError, FileNotFoundError) as error:
             failures[(run.scene, run.seed)] = str(error)
             on_run(index, run, f"failed: {error}")

@@ -140,12 +140,13 @@ def predict_rays(
     return result
 
 
-
 def _no_rays(
     model: MixNeRF, rays: RayBundle, masses: tuple[float, ...], with_targets: bool, with_mode: bool
 ) -> dict[str, np.ndarray]:
     """`predict_rays`'s answer for a batch without rays: every field, empty, at its shape."""
-    one = jax.tree_util.tree_map(lambda x: jnp.ones((1, *jnp.shape(x)[len(rays.batch_shape) :]), jnp.float32), rays)
+    one = jax.tree_util.tree_map(
+        lambda x: jnp.ones((1, *jnp.shape(x)[len(rays.batch_shape) :]), jnp.float32), rays
+    )
     one = eqx.tree_at(lambda r: r.far, one, 2.0 * one.near)
     target = jnp.zeros((1, 3), jnp.float32) if with_targets else None
     shapes = eqx.filter_eval_shape(_summarise_rays, model, one, jnp.float32(1.0), target, masses, with_mode)
@@ -159,6 +160,7 @@ def _no_rays(
         result[name] = np.zeros((*lead, *rays.batch_shape, *rest), np.dtype(shape.dtype))
     result["masses"] = np.asarray(masses)
     return result
+
 
 def _to_host(summary: PredictiveSummary) -> dict[str, np.ndarray]:
     fields = {f.name: getattr(summary, f.name) for f in dataclasses.fields(summary) if f.name != "masses"}

@@ -41,6 +41,7 @@ def check_destination(path: Path) -> None:
     if not os.access(ancestor, os.W_OK | os.X_OK):
         raise ValueError(f"cannot write the video {path}: {ancestor} is not writable")
 
+
 def side_by_side(panels: list[Float[np.ndarray, "height width channels"]]) -> np.ndarray:
     """The panels left to right as one 8-bit frame, padded with white to even sides (the
     H.264 encoder's chroma subsampling needs them)."""

@@ -18,7 +18,9 @@ def test_the_checkouts_configs_folder_is_the_packages():
     # `configs/` at the top of a checkout links to the package data (the wheel test checks
     # that an install carries them).
     assert (REPO / "configs").resolve() == (REPO / "mixnerf_eqx" / "configs").resolve()
-    assert len(CONFIGS) >= 30 and all(path.parent.resolve() == (REPO / "configs").resolve() for path in CONFIGS)
+    assert len(CONFIGS) >= 30 and all(
+        path.parent.resolve() == (REPO / "configs").resolve() for path in CONFIGS
+    )
     assert len(NOTEBOOKS) >= 2
 
 
@@ -156,7 +158,7 @@ def test_paper_architecture_sizes():
     assert field.trunk[0].in_features == 96  # 2 * 3 * 16 IPE frequencies
     assert field.trunk[5].in_features == 256 + 96  # input concatenated after layer 4
     assert field.view_layer.in_features == 256 + 27  # bottleneck + encoded view direction
-    assert field.beta_head.in_features == 128 and field.depth_head.in_features == 128
+    assert field.heads.beta_head.in_features == 128 and field.heads.depth_head.in_features == 128
     assert model.coarse_sampler.num_samples == 128 and model.fine_sampler.num_samples == 128
 
 

@@ -14,6 +14,7 @@ import pytest
 import mixnerf_eqx as mx
 from mixnerf_eqx import AbstractField, FieldOutputs, build_field
 from mixnerf_eqx._field.base import vmap_field
+from mixnerf_eqx._field.heads import MixtureHeads
 
 SMALL_MLP = ["model.width=16", "model.depth=2", "model.skip_layer=1", "model.view_width=8", "model.max_deg=4"]
 SMALL_GRID = ["grid.levels=3", "grid.min_resolution=4", "grid.max_resolution=16", "grid.features=4"]
@@ -155,7 +156,9 @@ def test_gradients_are_finite_inside_on_and_outside_the_box(field):
     assert np.all(np.isfinite(points)) and np.all(np.isfinite(scales))
     # Something is learnt from the points themselves (the regulariser aside).
     outputs_only = eqx.filter_grad(lambda f: total(f, means, covs) - f.regulariser())(field)
-    assert any(np.any(leaf != 0) for leaf in jax.tree_util.tree_leaves(eqx.filter(outputs_only, eqx.is_array)))
+    assert any(
+        np.any(leaf != 0) for leaf in jax.tree_util.tree_leaves(eqx.filter(outputs_only, eqx.is_array))
+    )
 
 
 def test_at_step_keeps_the_structure_ends_at_the_field_and_traces_once(field):
@@ -190,3 +193,30 @@ def test_the_regulariser_is_a_finite_non_negative_scalar(field):
     assert all(
         np.all(np.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(eqx.filter(gradient, eqx.is_array))
     )
+
+
+def test_every_field_has_the_one_set_of_heads(field, request):
+    """The colour, `beta` and ray-depth heads are one `MixtureHeads` in every field, with the
+    mixture heads exactly where the config's method is MixNeRF."""
+    heads = field.heads
+    assert isinstance(heads, MixtureHeads)
+    baseline = request.node.callspec.params["field"].endswith("-baseline")
+    assert field.has_mixture_heads is heads.has_mixture is (not baseline)
+    assert (heads.beta_head is None) is (heads.depth_head is None) is baseline
+    # The heads compute the outputs from the raw density and the view features alone.
+    features = jnp.linspace(-1.0, 1.0, heads.rgb_head.in_features)
+    outputs = heads(jnp.asarray(0.5), features, None)
+    rgb = 1 / (1 + np.exp(-(np.asarray(heads.rgb_head.weight) @ np.asarray(features) + heads.rgb_head.bias)))
+    np.testing.assert_allclose(outputs.rgb, rgb * (1 + 2 * heads.rgb_padding) - heads.rgb_padding, rtol=1e-5)
+    assert float(outputs.density) == pytest.approx(float(heads.density(jnp.asarray(0.5))))
+
+
+def test_a_field_without_a_builder_is_refused():
+    """`build_field` is a table of constructors: a field name without one is an error."""
+    config = mx.load_config("builtin", SMALL_MLP)
+    removed = mx.FIELD_BUILDERS.pop("mlp")
+    try:
+        with pytest.raises(ValueError, match="model.field 'mlp' is none of"):
+            build_field(config, key=jax.random.key(0))
+    finally:
+        mx.FIELD_BUILDERS["mlp"] = removed

@@ -206,7 +206,7 @@ def test_density_noise_is_added_in_training_only():
     # The quick start sets it, and its baseline inherits it.
     for name in ("builtin_grid", "builtin_mipnerf_grid"):
         config = mx.load_config(name)
-        assert mx.build_model(config, key=jax.random.key(0)).field.density_noise == 1.0
+        assert mx.build_model(config, key=jax.random.key(0)).field.heads.density_noise == 1.0
 
 
 def test_exponential_density_activation():
@@ -238,7 +238,7 @@ def test_exponential_density_activation():
     # The quick start uses it, and its baseline inherits it; the MLP-sized default stays softplus.
     for name in ("builtin_grid", "builtin_mipnerf_grid"):
         config = mx.load_config(name)
-        assert mx.build_model(config, key=jax.random.key(0)).field.density_activation == "exp"
+        assert mx.build_model(config, key=jax.random.key(0)).field.heads.activation == "exp"
     assert mx.load_config(None, ["model.field=grid"]).grid.density_activation == "softplus"
 
 

@@ -81,7 +81,8 @@ def test_no_module_imports_a_lower_layer():
         for imported in sorted(imported_units(path)):
             if layer_of[imported] > layer_of[here]:
                 wrong.append(
-                    f"{path.relative_to(REPO)} imports {imported} (layer {layer_of[imported]} > {layer_of[here]})"
+                    f"{path.relative_to(REPO)} imports {imported} "
+                    f"(layer {layer_of[imported]} > {layer_of[here]})"
                 )
     assert not wrong, "\n".join(wrong)
 

@@ -21,7 +21,9 @@ from hypothesis import strategies as st
 import mixnerf_eqx as mx
 from mixnerf_eqx._predictive import ColourMixture, TerminationDistribution, termination_cdf
 
-SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+SETTINGS = settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 
 _ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True)
 # One real number in every type the API accepts: Python int and float, numpy scalars and
@@ -134,7 +136,9 @@ def _assert_quantiles(quantiles, levels, cdf):
     temperature=SCALARS,
 )
 @example(count=1, seed=0, levels=[4.511335799909543e-44], temperature=1.0)  # a float32 subnormal
-def test_colour_mixture_refuses_exactly_the_bad_inputs_and_keeps_its_invariants(count, seed, levels, temperature):
+def test_colour_mixture_refuses_exactly_the_bad_inputs_and_keeps_its_invariants(
+    count, seed, levels, temperature
+):
     mixture = _mixture(count, seed)
     kind, result = _outcome(lambda: mixture.with_temperature(temperature).quantiles(levels))
     valid = _temperature_ok(temperature, mixture.scale) and all(_level_ok(x) for x in levels)
@@ -172,7 +176,12 @@ def test_colour_intervals_hold_their_mass(count, seed, mass):
 
 
 @SETTINGS
-@given(count=RAY_COUNTS, seed=st.integers(0, 2**16), levels=st.lists(SCALARS, min_size=1, max_size=3), mass=SCALARS)
+@given(
+    count=RAY_COUNTS,
+    seed=st.integers(0, 2**16),
+    levels=st.lists(SCALARS, min_size=1, max_size=3),
+    mass=SCALARS,
+)
 def test_termination_refuses_exactly_the_bad_inputs_and_keeps_its_invariants(count, seed, levels, mass):
     termination = _termination(count, seed)
     kind, result = _outcome(lambda: termination.quantiles(levels))
@@ -188,10 +197,14 @@ def test_termination_refuses_exactly_the_bad_inputs_and_keeps_its_invariants(cou
         # A ray that nothing stops terminates at its far bound; the others where their
         # distribution function reaches the level: just below the quantile it is at most the
         # level, at it at least (a zero-width interval is a point mass, a jump of the function).
-        np.testing.assert_allclose(quantiles[:, ~stopped], np.broadcast_to(edges[~stopped, -1], quantiles[:, ~stopped].shape))
+        np.testing.assert_allclose(
+            quantiles[:, ~stopped], np.broadcast_to(edges[~stopped, -1], quantiles[:, ~stopped].shape)
+        )
 
         def cdf(t, w, e):
-            return float(termination_cdf(jnp.float32(t), jnp.asarray(w, jnp.float32), jnp.asarray(e, jnp.float32)))
+            return float(
+                termination_cdf(jnp.float32(t), jnp.asarray(w, jnp.float32), jnp.asarray(e, jnp.float32))
+            )
 
         step = _STEP * np.maximum(1.0, np.abs(edges[:, -1]))
         for quantile, level in zip(quantiles, levels, strict=True):

@@ -91,7 +91,9 @@ def test_a_ctrl_c_anywhere_in_the_loop_resumes_to_the_uninterrupted_run(
     resumed = fit_quietly(config, tiny_scene)
     _assert_same_model(resumed.state, straight.state)
     assert resumed.metrics["test"] == straight.metrics["test"]
-    log = [json.loads(line) for line in (Path(config.train.run_dir) / "train_log.jsonl").read_text().splitlines()]
+    log = [
+        json.loads(line) for line in (Path(config.train.run_dir) / "train_log.jsonl").read_text().splitlines()
+    ]
     assert [entry["step"] for entry in log if "loss" in entry] == [2, 4, 6, 8, 10]
     # The evaluation cut short at step 5 (its step checkpointed without it) is made on resuming.
     straight_log = (Path(straight.run_dir) / "train_log.jsonl").read_text().splitlines()
@@ -119,7 +121,9 @@ def test_a_ctrl_c_in_the_set_up_before_the_loop_stops_the_run(tiny_scene, tmp_pa
 
     monkeypatch.setattr(_train, "load_dataset", load_interrupted)
     run_dir = tmp_path / "run"
-    code = train_cli.main(["--config", "builtin", *TINY_OVERRIDES, "--run-dir", str(run_dir), "--no-progress"])
+    code = train_cli.main(
+        ["--config", "builtin", *TINY_OVERRIDES, "--run-dir", str(run_dir), "--no-progress"]
+    )
     assert code == 130 and loaded == [True]
     steps = [json.loads(line)["step"] for line in (run_dir / "train_log.jsonl").read_text().splitlines()]
     assert max(steps, default=0) < 150  # stopped long before train.max_steps
@@ -162,7 +166,9 @@ print("outside: lost")
 def test_a_ctrl_c_that_python_drops_in_a_gc_callback_is_raised_again():
     """Soak finding: a Ctrl-C in the first seconds, during the imports, could land in JAX's
     garbage-collection callback; Python dropped it and the run trained to its end."""
-    result = subprocess.run([sys.executable, "-c", DROPPED_INTERRUPT], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-c", DROPPED_INTERRUPT], capture_output=True, text=True, timeout=120
+    )
     assert "deferred: raised at the safe point" in result.stdout
     assert "lost" not in result.stdout
     assert result.returncode != 0 and result.stderr.rstrip().endswith("KeyboardInterrupt")
@@ -193,7 +199,6 @@ def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatc
     assert calls["count"] == 2
 
 
-
 def test_ctrl_c_in_the_final_render_leaves_the_run_folder_as_it_was(tiny_config, tiny_scene, monkeypatch):
     config = _with(tiny_config, "train", max_steps=2)
     run_dir = Path(config.train.run_dir)
@@ -217,6 +222,7 @@ def test_ctrl_c_in_the_final_render_leaves_the_run_folder_as_it_was(tiny_config,
     names = sorted(p.name for p in (run_dir / "renders").iterdir())
     assert len(names) == 3 * tiny_scene.test.num_views and (run_dir / "metrics.json").exists()
     assert not (run_dir / "renders.partial").exists()
+
 
 def _corrupt(path: Path, how: str) -> None:
     if how == "empty":
@@ -390,9 +396,7 @@ def test_a_huge_chunk_is_bounded_by_the_rays(tiny_config, tiny_scene):
 )
 def test_meaningless_settings_are_refused_naming_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        mx.load_config(
-            "builtin", [override, "data.far=4.0"] if "near" in override else [override]
-        )
+        mx.load_config("builtin", [override, "data.far=4.0"] if "near" in override else [override])
 
 
 def test_the_log_is_on_disk_at_every_checkpoint(tiny_config, tiny_scene, monkeypatch):

@@ -213,9 +213,10 @@ def test_render_refuses_meaningless_arguments(trained_run, arguments, message, c
     assert error.startswith("error: ") and message in error and "\n" not in error
 
 
-
 @pytest.mark.parametrize("where", ["folder", "under_a_file"])
-def test_a_video_destination_that_cannot_be_written_is_refused_before_loading(where, tmp_path, capsys, monkeypatch):
+def test_a_video_destination_that_cannot_be_written_is_refused_before_loading(
+    where, tmp_path, capsys, monkeypatch
+):
     if where == "folder":
         out = tmp_path / "x.mp4"
         out.mkdir()
@@ -234,6 +235,7 @@ def test_a_video_destination_that_cannot_be_written_is_refused_before_loading(wh
     error = capsys.readouterr().err.strip()
     assert error.startswith("error: ") and message in error and "\n" not in error
     assert "partial" not in error
+
 
 def test_render_of_a_folder_that_is_no_run_is_one_clear_error(tmp_path, capsys):
     assert render.main([str(tmp_path)]) == 2

@@ -49,7 +49,9 @@ def test_a_second_holder_in_the_same_process_is_refused_and_the_lock_is_free_aft
     with hold_folder(tmp_path):
         holder = (tmp_path / LOCK_NAME).read_text()
         assert f"pid {os.getpid()}" in holder
-        with pytest.raises(FolderBusyError, match=f"in use by another run \\(pid {os.getpid()}.*train.run_dir"):
+        with pytest.raises(
+            FolderBusyError, match=f"in use by another run \\(pid {os.getpid()}.*train.run_dir"
+        ):
             with hold_folder(tmp_path):
                 pass
     with hold_folder(tmp_path, "sweep", "--out"):
@@ -67,9 +69,7 @@ def test_a_train_started_mid_run_fails_and_the_lock_dies_with_its_holder(tmp_pat
             assert first.poll() is None, first.stderr.read()
             assert time.monotonic() < deadline, "the first run logged nothing in 240 s"
             time.sleep(0.5)
-        second = subprocess.run(
-            _train_command(run_dir, 20), capture_output=True, text=True, timeout=240
-        )
+        second = subprocess.run(_train_command(run_dir, 20), capture_output=True, text=True, timeout=240)
         assert second.returncode == 2, second.stderr
         assert "in use by another run" in second.stderr and f"pid {first.pid}" in second.stderr
         assert "Traceback" not in second.stderr
@@ -91,7 +91,9 @@ def test_a_train_started_mid_run_fails_and_the_lock_dies_with_its_holder(tmp_pat
 def test_two_trains_started_together_one_runs_and_one_is_refused(tmp_path):
     run_dir = tmp_path / "run"
     processes = [
-        subprocess.Popen(_train_command(run_dir, 6), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        subprocess.Popen(
+            _train_command(run_dir, 6), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+        )
         for _ in range(2)
     ]
     results = [(p.wait(timeout=300), p.communicate()[1]) for p in processes]
@@ -110,7 +112,14 @@ def test_a_sweep_folder_in_use_is_refused_before_any_run(tmp_path, capsys):
     out.mkdir()
     with hold_folder(out, "sweep", "--out"):
         code = sweep_main(
-            ["--config", str(_REPO / "configs" / "builtin.toml"), "--out", str(out), "--no-progress", *TINY_OVERRIDES]
+            [
+                "--config",
+                str(_REPO / "configs" / "builtin.toml"),
+                "--out",
+                str(out),
+                "--no-progress",
+                *TINY_OVERRIDES,
+            ]
         )
     assert code == 2
     err = capsys.readouterr().err
@@ -122,8 +131,16 @@ def test_a_failed_train_leaves_no_empty_run_folder(tmp_path):
     # The scene's files are missing: the run fails after its folder was made, while loading.
     run_dir = tmp_path / "never"
     command = [
-        sys.executable, "-m", "mixnerf_eqx.train", "--config", str(_REPO / "configs" / "llff3.toml"),
-        "--run-dir", str(run_dir), "--data-dir", str(tmp_path / "no_data"), "--no-progress",
+        sys.executable,
+        "-m",
+        "mixnerf_eqx.train",
+        "--config",
+        str(_REPO / "configs" / "llff3.toml"),
+        "--run-dir",
+        str(run_dir),
+        "--data-dir",
+        str(tmp_path / "no_data"),
+        "--no-progress",
     ]
     failed = subprocess.run(command, capture_output=True, text=True, timeout=240)
     assert failed.returncode == 2, failed.stderr

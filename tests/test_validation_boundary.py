@@ -30,7 +30,19 @@ def _termination():
     return TerminationDistribution(weights, edges)
 
 
-BAD_LEVELS = [0, 1, 0.0, 1.0, -0.5, 1.5, math.nan, math.inf, np.float32(1.5), np.float64(0.0), jnp.asarray(1.5)]
+BAD_LEVELS = [
+    0,
+    1,
+    0.0,
+    1.0,
+    -0.5,
+    1.5,
+    math.nan,
+    math.inf,
+    np.float32(1.5),
+    np.float64(0.0),
+    jnp.asarray(1.5),
+]
 GOOD_LEVELS = [0.5, np.float32(0.25), np.float64(0.75), jnp.asarray(0.5), np.asarray(0.5)]
 
 
@@ -38,7 +50,12 @@ GOOD_LEVELS = [0.5, np.float32(0.25), np.float64(0.75), jnp.asarray(0.5), np.asa
 @pytest.mark.parametrize("level", BAD_LEVELS, ids=repr)
 def test_every_bad_level_is_the_range_message_whatever_its_type(distribution, level):
     dist = distribution()
-    for call in (dist.quantile, dist.interval, lambda x: dist.quantiles([0.5, x]), lambda x: dist.quantiles(jnp.asarray([0.5, x]))):
+    for call in (
+        dist.quantile,
+        dist.interval,
+        lambda x: dist.quantiles([0.5, x]),
+        lambda x: dist.quantiles(jnp.asarray([0.5, x])),
+    ):
         with pytest.raises(ValueError, match=r"must lie in \(0, 1\)"):
             call(level)
 
@@ -61,7 +78,11 @@ def test_a_traced_bad_level_fails_when_computed():
         jax.block_until_ready(quantile(1.5))
 
 
-@pytest.mark.parametrize("temperature", [-1, 0, -1.0, 0.0, math.nan, math.inf, -math.inf, np.float32(-2.0), jnp.asarray(math.inf)], ids=repr)
+@pytest.mark.parametrize(
+    "temperature",
+    [-1, 0, -1.0, 0.0, math.nan, math.inf, -math.inf, np.float32(-2.0), jnp.asarray(math.inf)],
+    ids=repr,
+)
 def test_a_temperature_must_be_finite_and_positive(temperature):
     with pytest.raises(ValueError, match="temperature must be a finite positive number"):
         _mixture().with_temperature(temperature)
@@ -78,7 +99,11 @@ def test_good_temperatures_of_every_type_agree_and_a_traced_bad_one_fails():
 
 
 def test_metrics_json_is_strict_and_names_what_was_not_finite():
-    value = {"test": {"psnr": 20.0, "nll": math.inf}, "history": [{"loss": math.nan}, {"loss": 1.0}], "x": np.float32(-np.inf)}
+    value = {
+        "test": {"psnr": 20.0, "nll": math.inf},
+        "history": [{"loss": math.nan}, {"loss": 1.0}],
+        "x": np.float32(-np.inf),
+    }
     text = strict_json.dumps(value)
 
     def refuse(constant):
@@ -121,14 +146,23 @@ def test_a_reveal_longer_than_the_run_is_a_warning_and_a_fraction_is_not(tiny_sc
 
     from mixnerf_eqx._config import replace_setting
 
-    grid = [*TINY_OVERRIDES, "model.field=\"grid\"", "grid.levels=2", "grid.min_resolution=8", "grid.max_resolution=16"]
+    grid = [
+        *TINY_OVERRIDES,
+        'model.field="grid"',
+        "grid.levels=2",
+        "grid.min_resolution=8",
+        "grid.max_resolution=16",
+    ]
     long = mx.load_config("builtin", [*grid, "train.max_steps=3", "grid.coarse_to_fine_steps=10"])
     (message,) = mx.setting_warnings(long)
     assert message.startswith("grid.coarse_to_fine_steps = 10 is longer than the run (train.max_steps = 3)")
     assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_fraction=1.0)) == []
     assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_steps=3)) == []
     # The MLP has no levels to reveal: the grid's keys say nothing to it.
-    assert mx.setting_warnings(mx.load_config("builtin", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"])) == []
+    assert (
+        mx.setting_warnings(mx.load_config("builtin", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"]))
+        == []
+    )
     # A run with it trains, and says so once at its start.
     long = replace_setting(long, "train", run_dir=str(tmp_path / "run"))
     with pytest.warns(mx.SettingWarning, match="the finest levels are never fully revealed"):

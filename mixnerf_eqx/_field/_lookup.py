@@ -100,7 +100,11 @@ def _in_own_buffers(arrays, guard: Int[Array, ""]):
     `guard` is known to be non-negative (a clamped texel index): the zero branch is never
     taken and only keeps the conditional from being simplified away.
     """
-    return jax.lax.cond(guard < 0, lambda xs: jax.tree_util.tree_map(jnp.zeros_like, xs), lambda xs: xs, arrays)
+
+    def zeros(xs):
+        return jax.tree_util.tree_map(jnp.zeros_like, xs)
+
+    return jax.lax.cond(guard < 0, zeros, lambda xs: xs, arrays)
 
 
 @jax.custom_vjp

@@ -29,8 +29,9 @@ from jaxtyping import Array, Float, Int
 from .._custom_types import PRNGKey, RayKeys, Vec3
 from .._encoding import positional_encoding
 from ._lookup import plane_product, resolve_lookup, weighted_rows
-from .base import AbstractField, FieldOutputs, safe_norm, vmap_field
-from .mip_mlp import _dense
+from .base import AbstractField, FieldOutputs, vmap_field
+from .heads import MixtureHeads, dense
+from .heads import density_activation as density_activation
 
 # instant-ngp's spatial hash primes (the first is 1, so x needs no multiplication).
 _HASH_PRIMES = (1, 2654435761, 805459861)
@@ -264,20 +265,6 @@ def level_scale_weights(
     return jax.scipy.special.erf(cells / jnp.maximum(math.sqrt(8.0) * sigma, 1e-12))
 
 
-# exp's argument is capped here: exp(11) ~ 6e4 is opaque over any interval a sampler makes,
-# and the cap keeps the forward pass finite (instant-ngp's truncated exponential caps the
-# gradient instead; here the gradient above the cap is zero, which no trained field reaches).
-_EXP_DENSITY_CAP = 11.0
-
-
-def density_activation(raw: Float[Array, "*batch"], kind: str) -> Float[Array, "*batch"]:
-    """The density from the raw output: `softplus(raw)` (mip-NeRF) or `exp(min(raw, 11))`
-    (instant-ngp's exponential, capped)."""
-    if kind == "exp":
-        return jnp.exp(jnp.minimum(raw, _EXP_DENSITY_CAP))
-    return jax.nn.softplus(raw)
-
-
 class GridField(AbstractField):
     """A grid encoding and a small decoder, with MixNeRF's heads placed as in the MLP field.
 
@@ -299,11 +286,12 @@ class GridField(AbstractField):
     - `tv_weight` (static): weight of the encoding's total variation in the loss.
     - `coarse_to_fine_steps` (static): steps over which the levels are revealed one after
       another, coarsest first (0: all from the start).
-    - `density_activation` (static): `"softplus"` (the MLP field's) or `"exp"`; the
-      exponential lets a few steps make a surface opaque within one sample interval (density
-      grows by a factor per step of the optimiser, not by a constant).
-    - `density_noise`, `density_bias`, `rgb_padding`, `viewdir_max_deg` (static): as in
-      `MipNeRFField`.
+    - `heads`: the colour, `beta` and ray-depth heads and the density's noise and activation
+      (`MixtureHeads`, shared with `MipNeRFField`). The activation (the argument
+      `density_activation`) is `"softplus"` (the MLP field's) or `"exp"`; the exponential
+      lets a few steps make a surface opaque within one sample interval (density grows by a
+      factor per step of the optimiser, not by a constant).
+    - `density_bias`, `viewdir_max_deg` (static): as in `MipNeRFField`.
     - `lookup` (static): how `evaluate_batch` reads the grid: `"vmap"` (the encoding per
       point, lifted by `jax.vmap`) or `"batched"` (`encoding.encode_batch`, whose gradient
       scatters once per level; faster on a CPU). Both give the same values and gradients.
@@ -313,9 +301,7 @@ class GridField(AbstractField):
     density_layer: eqx.nn.Linear
     density_out: eqx.nn.Linear
     view_layer: eqx.nn.Linear
-    rgb_head: eqx.nn.Linear
-    beta_head: eqx.nn.Linear | None
-    depth_head: eqx.nn.Linear | None
+    heads: MixtureHeads
     level_weights: Float[Array, "levels"]
     box_min: tuple[float, float, float] = eqx.field(static=True)
     box_max: tuple[float, float, float] = eqx.field(static=True)
@@ -323,10 +309,7 @@ class GridField(AbstractField):
     scale_weighting: bool = eqx.field(static=True)
     tv_weight: float = eqx.field(static=True)
     coarse_to_fine_steps: int = eqx.field(static=True)
-    density_activation: str = eqx.field(static=True)
-    density_noise: float = eqx.field(static=True)
     density_bias: float = eqx.field(static=True)
-    rgb_padding: float = eqx.field(static=True)
     viewdir_max_deg: int = eqx.field(static=True)
     lookup: str = eqx.field(static=True)
 
@@ -360,20 +343,23 @@ class GridField(AbstractField):
             or any(lo >= hi for lo, hi in zip(box_min, box_max, strict=True))
         ):
             raise ValueError(f"the box must have three sides of positive length, got {box_min}, {box_max}")
-        if density_activation not in ("softplus", "exp"):
-            raise ValueError(f"density_activation must be 'softplus' or 'exp', got {density_activation!r}")
         if decoder_width < 1 or view_width < 1 or geo_features < 0:
             raise ValueError("decoder_width and view_width must be positive and geo_features >= 0")
         view_size = 3 + 2 * 3 * viewdir_max_deg
         keys = iter(jax.random.split(key, 6))
         in_size = encoding.num_levels * encoding.features_per_level
         self.encoding = encoding
-        self.density_layer = _dense(in_size, decoder_width, key=next(keys))
-        self.density_out = _dense(decoder_width, 1 + geo_features, key=next(keys))
-        self.view_layer = _dense(geo_features + view_size, view_width, key=next(keys))
-        self.rgb_head = _dense(view_width, 3, key=next(keys))
-        self.beta_head = _dense(view_width, 3, key=next(keys)) if mixture_heads else None
-        self.depth_head = _dense(view_width, 3, key=next(keys)) if mixture_heads else None
+        self.density_layer = dense(in_size, decoder_width, key=next(keys))
+        self.density_out = dense(decoder_width, 1 + geo_features, key=next(keys))
+        self.view_layer = dense(geo_features + view_size, view_width, key=next(keys))
+        self.heads = MixtureHeads(
+            view_width,
+            mixture=mixture_heads,
+            density_noise=density_noise,
+            rgb_padding=rgb_padding,
+            activation=density_activation,
+            keys=(next(keys), next(keys), next(keys)),
+        )
         self.level_weights = jnp.ones(encoding.num_levels)
         self.box_min = box_min
         self.box_max = box_max
@@ -381,17 +367,14 @@ class GridField(AbstractField):
         self.scale_weighting = scale_weighting
         self.tv_weight = tv_weight
         self.coarse_to_fine_steps = coarse_to_fine_steps
-        self.density_activation = density_activation
-        self.density_noise = density_noise
         self.density_bias = density_bias
-        self.rgb_padding = rgb_padding
         self.viewdir_max_deg = viewdir_max_deg
         # "auto" is resolved here, for the backend the field is built on.
         self.lookup = resolve_lookup(lookup)
 
     @property
     def has_mixture_heads(self) -> bool:
-        return self.beta_head is not None and self.depth_head is not None
+        return self.heads.has_mixture
 
     def at_step(self, step: Int[Array, ""] | int) -> "GridField":
         """The field as training step `step` (from 1) sees it: level `l` (coarsest 0) is
@@ -438,7 +421,7 @@ class GridField(AbstractField):
         return self._density_from_rows(self.encoding(point), point, cov)
 
     def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
-        return density_activation(self._density_branch(mean, cov)[0], self.density_activation)
+        return self.heads.density(self._density_branch(mean, cov)[0])
 
     def _decode(
         self,
@@ -450,17 +433,9 @@ class GridField(AbstractField):
     ) -> FieldOutputs:
         """The outputs at one point from its encoded `rows`."""
         raw_density, geometry = self._density_from_rows(rows, point, cov)
-        if key is not None and self.density_noise > 0:
-            raw_density = raw_density + self.density_noise * jax.random.normal(key, (), raw_density.dtype)
-        density = density_activation(raw_density, self.density_activation)
         view_features = positional_encoding(viewdir, 0, self.viewdir_max_deg, append_identity=True)
         hidden = jax.nn.relu(self.view_layer(jnp.concatenate([geometry, view_features])))
-        rgb = jax.nn.sigmoid(self.rgb_head(hidden)) * (1 + 2 * self.rgb_padding) - self.rgb_padding
-        beta = ray_depth = None
-        if self.beta_head is not None and self.depth_head is not None:
-            beta = jax.nn.softplus(self.beta_head(hidden))
-            ray_depth = safe_norm(self.depth_head(hidden))
-        return FieldOutputs(density=density, rgb=rgb, beta=beta, ray_depth=ray_depth)
+        return self.heads(raw_density, hidden, key)
 
     def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         point = self._unit_point(mean)

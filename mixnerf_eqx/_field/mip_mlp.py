@@ -7,32 +7,8 @@ from jaxtyping import Array, Float
 
 from .._custom_types import PRNGKey, Vec3
 from .._encoding import integrated_positional_encoding, positional_encoding
-from .base import AbstractField, FieldOutputs, safe_norm
-
-
-def _dense(in_size: int, out_size: int, *, key: PRNGKey) -> eqx.nn.Linear:
-    # mip-NeRF initialises kernels with Glorot-uniform and biases with zeros.
-    layer = eqx.nn.Linear(in_size, out_size, key=key)
-    weight = jax.nn.initializers.glorot_uniform()(key, (out_size, in_size))
-    return eqx.tree_at(lambda lin: (lin.weight, lin.bias), layer, (weight, jnp.zeros(out_size)))
-
-
-def _apply_dense(
-    layer: eqx.nn.Linear, x: Float[Array, "in_features"], matmul_dtype: Literal["float32", "bfloat16"]
-) -> Float[Array, "out_features"]:
-    """`layer(x)`, with the product optionally in bfloat16 and the result always float32.
-
-    In bfloat16 the inputs and the kernel are rounded to bfloat16 and the product accumulates
-    in float32 (`preferred_element_type`), so the tensor cores do the work while the bias,
-    the activations after it and everything downstream (compositing, losses) stay float32.
-    The parameters themselves stay float32, so the optimiser updates are not rounded.
-    """
-    if matmul_dtype == "float32":
-        return layer(x)
-    product = jnp.matmul(
-        layer.weight.astype(jnp.bfloat16), x.astype(jnp.bfloat16), preferred_element_type=jnp.float32
-    )
-    return product + layer.bias
+from .base import AbstractField, FieldOutputs
+from .heads import MixtureHeads, apply_dense, dense
 
 
 class MipNeRFField(AbstractField):
@@ -49,27 +25,25 @@ class MipNeRFField(AbstractField):
     - `min_deg`, `max_deg`: IPE frequencies `2^min_deg .. 2^(max_deg-1)`.
     - `viewdir_max_deg`: view-direction frequencies `2^0 .. 2^(viewdir_max_deg-1)`.
     - `skip_layer`: the trunk layer after which the input is concatenated again.
-    - `density_noise`: std of the noise added to the raw density in training.
     - `density_bias`: shift of the raw density before the softplus (mip-NeRF: -1).
-    - `rgb_padding`: colour range padding, `sigmoid * (1 + 2 p) - p`.
     - `matmul_dtype`: `"bfloat16"` runs every dense layer's product in bfloat16 with float32
       accumulation; the encodings, biases, activations and heads' outputs stay float32.
+
+    `heads` (`MixtureHeads`, shared with `GridField`) holds the colour, `beta` and ray-depth
+    layers, the training noise on the raw density (`density_noise`, its std) and the colour's
+    padding (`rgb_padding`: `sigmoid * (1 + 2 p) - p`).
     """
 
     trunk: tuple[eqx.nn.Linear, ...]
     density_head: eqx.nn.Linear
     bottleneck: eqx.nn.Linear
     view_layer: eqx.nn.Linear
-    rgb_head: eqx.nn.Linear
-    beta_head: eqx.nn.Linear | None
-    depth_head: eqx.nn.Linear | None
+    heads: MixtureHeads
     min_deg: int = eqx.field(static=True)
     max_deg: int = eqx.field(static=True)
     viewdir_max_deg: int = eqx.field(static=True)
     skip_layer: int = eqx.field(static=True)
-    density_noise: float = eqx.field(static=True)
     density_bias: float = eqx.field(static=True)
-    rgb_padding: float = eqx.field(static=True)
     matmul_dtype: Literal["float32", "bfloat16"] = eqx.field(static=True)
 
     def __init__(
@@ -101,27 +75,29 @@ class MipNeRFField(AbstractField):
         trunk = []
         in_size = input_size
         for layer_index in range(depth):
-            trunk.append(_dense(in_size, width, key=next(keys)))
+            trunk.append(dense(in_size, width, key=next(keys)))
             in_size = width + input_size if self._skips_after(layer_index, skip_layer) else width
         self.trunk = tuple(trunk)
-        self.density_head = _dense(in_size, 1, key=next(keys))
-        self.bottleneck = _dense(in_size, width, key=next(keys))
-        self.view_layer = _dense(width + view_size, view_width, key=next(keys))
-        self.rgb_head = _dense(view_width, 3, key=next(keys))
-        head_keys = (next(keys), next(keys))
-        self.beta_head = _dense(view_width, 3, key=head_keys[0]) if mixture_heads else None
-        self.depth_head = _dense(view_width, 3, key=head_keys[1]) if mixture_heads else None
+        self.density_head = dense(in_size, 1, key=next(keys))
+        self.bottleneck = dense(in_size, width, key=next(keys))
+        self.view_layer = dense(width + view_size, view_width, key=next(keys))
+        self.heads = MixtureHeads(
+            view_width,
+            mixture=mixture_heads,
+            density_noise=density_noise,
+            rgb_padding=rgb_padding,
+            matmul_dtype=matmul_dtype,
+            keys=(next(keys), next(keys), next(keys)),
+        )
         self.min_deg = min_deg
         self.max_deg = max_deg
         self.viewdir_max_deg = viewdir_max_deg
         self.skip_layer = skip_layer
-        self.density_noise = density_noise
         self.density_bias = density_bias
-        self.rgb_padding = rgb_padding
         self.matmul_dtype = matmul_dtype
 
     def _dense(self, layer: eqx.nn.Linear, x: Float[Array, "in_features"]) -> Float[Array, "out_features"]:
-        return _apply_dense(layer, x, self.matmul_dtype)
+        return apply_dense(layer, x, self.matmul_dtype)
 
     @staticmethod
     def _skips_after(layer_index: int, skip_layer: int) -> bool:
@@ -129,7 +105,7 @@ class MipNeRFField(AbstractField):
 
     @property
     def has_mixture_heads(self) -> bool:
-        return self.beta_head is not None and self.depth_head is not None
+        return self.heads.has_mixture
 
     def _trunk(self, mean: Vec3, cov: Vec3) -> tuple[Float[Array, "features"], Float[Array, ""]]:
         """The trunk's last features and the raw density (before noise and softplus)."""
@@ -142,22 +118,11 @@ class MipNeRFField(AbstractField):
         return hidden, self._dense(self.density_head, hidden)[0] + self.density_bias
 
     def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
-        return jax.nn.softplus(self._trunk(mean, cov)[1])
+        return self.heads.density(self._trunk(mean, cov)[1])
 
     def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         hidden, raw_density = self._trunk(mean, cov)
-        if key is not None and self.density_noise > 0:
-            raw_density = raw_density + self.density_noise * jax.random.normal(key, (), raw_density.dtype)
-        density = jax.nn.softplus(raw_density)
-
         view_features = positional_encoding(viewdir, 0, self.viewdir_max_deg, append_identity=True)
         hidden = jnp.concatenate([self._dense(self.bottleneck, hidden), view_features])
         hidden = jax.nn.relu(self._dense(self.view_layer, hidden))
-        raw_rgb = self._dense(self.rgb_head, hidden)
-        rgb = jax.nn.sigmoid(raw_rgb) * (1 + 2 * self.rgb_padding) - self.rgb_padding
-
-        beta = ray_depth = None
-        if self.beta_head is not None and self.depth_head is not None:
-            beta = jax.nn.softplus(self._dense(self.beta_head, hidden))
-            ray_depth = safe_norm(self._dense(self.depth_head, hidden))
-        return FieldOutputs(density=density, rgb=rgb, beta=beta, ray_depth=ray_depth)
+        return self.heads(raw_density, hidden, key)

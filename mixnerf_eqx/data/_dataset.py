@@ -190,4 +190,3 @@ def rays_at_poses(like: Views, camtoworlds: PoseStack, near: float, far: float) 
         ndc=like.ndc,
         origin_plane_z=like.origin_plane_z,
     )
-
