@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 from ._interrupt import raise_if_interrupted
 from ._model import MixNeRF
@@ -70,15 +71,67 @@ def _render_chunk(
     return _render_dense(model, piece), counts
 
 
+def map_ray_chunks(
+    fn: Callable[[RayBundle, int, Any], Any], rays: RayBundle, chunk: int, extra: Any = None
+) -> tuple[list[Any], int]:
+    """`fn(piece, real, extra_piece)` over `rays`, `chunk` rays at a time, on the host.
+
+    The rays are flattened and padded once to a whole number of chunks (padding repeats the
+    last ray, and the last row of `extra`, an array with one row per ray or `None`), so every
+    call sees exactly `chunk` rays, of which the first `real` are real: a jitted `fn` compiles
+    once, and device memory is bounded by the chunk, not by the image. Each chunk is queued
+    before the previous one's outputs are copied back, so the device does not wait for the
+    host between chunks. A Ctrl-C is taken between chunks.
+
+    **Returns:**
+
+    The outputs of every chunk, copied to the host (untrimmed: the last chunk's padding is
+    still there), and the number of rays.
+    """
+    if chunk < 1:
+        raise ValueError(f"chunk must be at least 1, got {chunk}")
+    flat = rays.reshape(-1)
+    count = flat.origins.shape[0]
+    # Memory follows the chunk: never ask for more than the rays there are.
+    chunk = max(1, min(chunk, count))
+    num_chunks = -(-count // chunk)
+    pad = num_chunks * chunk - count
+
+    def padded(x):
+        x = jnp.asarray(x)
+        return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+
+    flat = jax.tree_util.tree_map(padded, flat)
+    if extra is not None:
+        extra = padded(jnp.asarray(extra).reshape(count, -1))
+    chunks = flat.reshape(num_chunks, chunk)
+    parts, pending = [], None
+    for index in range(num_chunks):
+        raise_if_interrupted()
+        start = index * chunk
+        extra_piece = None if extra is None else extra[start : start + chunk]
+        outputs = fn(chunks[index], min(chunk, count - start), extra_piece)
+        # JAX dispatches asynchronously: this chunk is queued before the previous one is
+        # copied back, which is where the host waits.
+        if pending is not None:
+            parts.append(jax.device_get(pending))
+        pending = outputs
+    if pending is not None:
+        parts.append(jax.device_get(pending))
+    return parts, count
+
+
+def join_chunks(parts: Sequence[np.ndarray], count: int, axis: int = 0) -> np.ndarray:
+    """The chunks' arrays of `map_ray_chunks` joined along the rays' `axis`, padding dropped."""
+    joined = np.concatenate([np.asarray(part) for part in parts], axis=axis)
+    return np.take(joined, np.arange(count), axis=axis)
+
+
 def render_rays(
     model: MixNeRF, rays: RayBundle, chunk: int = 4096, *, skipping: Skipping | None = None
 ) -> Rendered:
-    """Deterministically renders any number of rays, `chunk` rays at a time.
-
-    Every call of the compiled renderer sees exactly `chunk` rays (the ray table is padded
-    once to a whole number of chunks), so it compiles once, and device memory is bounded by
-    the chunk, not by the image. The next chunk is queued before the previous one is copied
-    back, so the device does not wait for the host between chunks.
+    """Deterministically renders any number of rays, `chunk` rays at a time
+    (`map_ray_chunks`: one compiled renderer, memory bounded by the chunk).
 
     **Arguments:**
 
@@ -92,47 +145,27 @@ def render_rays(
 
     A `Rendered` with `rays.batch_shape` in front.
     """
-    if chunk < 1:
-        raise ValueError(f"chunk must be at least 1, got {chunk}")
     batch_shape = rays.batch_shape
-    flat = rays.reshape(-1)
-    count = flat.origins.shape[0]
-    # Memory follows the chunk: never ask for more than the rays there are.
-    chunk = max(1, min(chunk, count))
-    num_chunks = -(-count // chunk)
-    pad = num_chunks * chunk - count
-    if pad:
-        # Padding rays repeat the last ray; their outputs are dropped.
-        flat = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), flat)
-    chunks = flat.reshape(num_chunks, chunk)
-    rgb = np.empty((count, 3), np.float32)
-    depth = np.empty((count,), np.float32)
-    acc = np.empty((count,), np.float32)
-    counts = RenderCounts()
 
-    def store(index: int, level: LevelOutputs) -> None:
-        start, stop = index * chunk, min((index + 1) * chunk, count)
-        out_rgb, out_depth, out_acc = jax.device_get((level.rgb, level.depth, level.acc))
-        rgb[start:stop] = out_rgb[: stop - start]
-        depth[start:stop] = out_depth[: stop - start]
-        acc[start:stop] = out_acc[: stop - start]
+    def render(piece: RayBundle, real: int, _) -> tuple[tuple[Array, Array, Array], RenderCounts]:
+        level, counts = _render_chunk(model, piece, real, skipping)
+        return (level.rgb, level.depth, level.acc), counts
 
-    pending = None
-    for index in range(num_chunks):
-        raise_if_interrupted()
-        level, chunk_counts = _render_chunk(model, chunks[index], min(chunk, count - index * chunk), skipping)
-        counts = counts + chunk_counts
-        # JAX dispatches asynchronously: this chunk is queued before the previous one is
-        # copied back, which is where the host waits.
-        if pending is not None:
-            store(*pending)
-        pending = (index, level)
-    if pending is not None:
-        store(*pending)
+    parts, count = map_ray_chunks(render, rays, chunk)
+    if not parts:
+        empty = np.empty((0,), np.float32)
+        return Rendered(
+            rgb=np.empty((*batch_shape, 3), np.float32),
+            depth=empty.reshape(batch_shape),
+            acc=empty.reshape(batch_shape),
+            counts=RenderCounts(),
+        )
+    rgb, depth, acc = (join_chunks([outputs[i] for outputs, _ in parts], count) for i in range(3))
+    counts = sum((chunk_counts for _, chunk_counts in parts), RenderCounts())
     return Rendered(
-        rgb=rgb.reshape(*batch_shape, 3),
-        depth=depth.reshape(batch_shape),
-        acc=acc.reshape(batch_shape),
+        rgb=rgb.astype(np.float32, copy=False).reshape(*batch_shape, 3),
+        depth=depth.astype(np.float32, copy=False).reshape(batch_shape),
+        acc=acc.astype(np.float32, copy=False).reshape(batch_shape),
         counts=counts,
     )
 

@@ -20,8 +20,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from ._evaluate import join_chunks, map_ray_chunks
 from ._images import save_png
-from ._interrupt import raise_if_interrupted
 from ._model import MixNeRF
 from ._predictive import (
     DEFAULT_MASSES,
@@ -53,27 +53,6 @@ _summarise_chunk = eqx.filter_jit(_summarise_rays)
 @eqx.filter_jit
 def _coarse_mixture(model: MixNeRF, rays: RayBundle) -> ColourMixture:
     return predictive(model, rays).colour
-
-
-def _chunks(rays: RayBundle, chunk: int, extra: np.ndarray | None = None):
-    """Flat rays (and `extra` per ray) padded to whole chunks: `(count, chunk, pieces)`."""
-    flat = rays.reshape(-1)
-    count = flat.origins.shape[0]
-    chunk = max(1, min(chunk, count))
-    num_chunks = -(-count // chunk)
-    pad = num_chunks * chunk - count
-
-    def padded(x):
-        x = jnp.asarray(x)
-        return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
-
-    flat = jax.tree_util.tree_map(padded, flat)
-    pieces = [flat.reshape(num_chunks, chunk)[index] for index in range(num_chunks)]
-    extras = [None] * num_chunks
-    if extra is not None:
-        extra = padded(extra.reshape(count, -1))
-        extras = [extra[index * chunk : (index + 1) * chunk] for index in range(num_chunks)]
-    return count, chunk, list(zip(pieces, extras, strict=True))
 
 
 def predict_rays(
@@ -115,25 +94,19 @@ def predict_rays(
     batch_shape = rays.batch_shape
     if math.prod(batch_shape) == 0:
         return _no_rays(model, rays, masses, targets is not None, with_mode)
-    count, chunk, pieces = _chunks(rays, chunk, targets)
     scale = jnp.asarray(temperature, jnp.float32)
-    parts: list[dict[str, np.ndarray]] = []
-    pending = None
-    for piece, target in pieces:
-        raise_if_interrupted()
+
+    def summarise_chunk(piece: RayBundle, real: int, target) -> dict[str, Array]:
+        del real
         summary = _summarise_chunk(model, piece, scale, target, masses, with_mode)
-        # Queue this chunk before copying the previous one back, as `render_rays` does.
-        if pending is not None:
-            parts.append(_to_host(pending))
-        pending = summary
-    if pending is not None:
-        parts.append(_to_host(pending))
+        return _fields(summary)
+
+    parts, count = map_ray_chunks(summarise_chunk, rays, chunk, targets)
     result = {}
     for name in parts[0]:
         # Interval bounds carry the masses' axis in front of the rays'.
         axis = 1 if name.endswith(("_lower", "_upper")) else 0
-        joined = np.concatenate([part[name] for part in parts], axis=axis)
-        joined = joined[:, :count] if axis else joined[:count]
+        joined = join_chunks([part[name] for part in parts], count, axis)
         lead = joined.shape[:1] if axis else ()
         result[name] = joined.reshape(*lead, *batch_shape, *joined.shape[len(lead) + 1 :])
     result["masses"] = np.asarray(masses)
@@ -162,9 +135,10 @@ def _no_rays(
     return result
 
 
-def _to_host(summary: PredictiveSummary) -> dict[str, np.ndarray]:
-    fields = {f.name: getattr(summary, f.name) for f in dataclasses.fields(summary) if f.name != "masses"}
-    return {name: np.asarray(value) for name, value in jax.device_get(fields).items() if value is not None}
+def _fields(summary: PredictiveSummary) -> dict[str, Array]:
+    """The summary's arrays by name (those it has; the masses apart)."""
+    fields = (f.name for f in dataclasses.fields(summary) if f.name != "masses")
+    return {name: getattr(summary, name) for name in fields if getattr(summary, name) is not None}
 
 
 def predict_views(
@@ -283,9 +257,8 @@ def sparsification(spread: np.ndarray, error: np.ndarray, num_fractions: int = 5
 
 def collect_mixtures(model: MixNeRF, rays: RayBundle, chunk: int = 4096) -> ColourMixture:
     """The coarse colour mixtures of a flat batch of rays, rendered `chunk` rays at a time."""
-    count, chunk, pieces = _chunks(rays, chunk)
-    parts = [_coarse_mixture(model, piece) for piece, _ in pieces]
-    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:count], *parts)
+    parts, count = map_ray_chunks(lambda piece, real, _: _coarse_mixture(model, piece), rays, chunk)
+    return jax.tree_util.tree_map(lambda *xs: jnp.asarray(join_chunks(xs, count)), *parts)
 
 
 def fit_temperature(mixtures: ColourMixture, targets: Float[Array, "batch channels"]) -> float:

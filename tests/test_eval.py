@@ -3,10 +3,13 @@ import json
 import subprocess
 import sys
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import mixnerf_eqx as mx
 from mixnerf_eqx import evaluate, fit, render_rays, render_views
+from mixnerf_eqx._evaluate import join_chunks, map_ray_chunks
 from mixnerf_eqx.data import rays_for_views
 from mixnerf_eqx.eval import main as eval_main
 from mixnerf_eqx.metrics import lpips_available
@@ -165,3 +168,36 @@ def test_masked_scores_follow_the_dtu_protocol():
     assert scores["ssim"] == pytest.approx(ssim(white_pred, white_target), rel=1e-12)
     unmasked = image_metrics(prediction, target, with_lpips=False)
     assert unmasked["psnr"] < scores["psnr"] - 3
+
+
+@pytest.mark.parametrize("count, chunk", [(10, 4), (8, 4), (3, 8), (1, 1), (0, 4)])
+def test_the_chunk_map_sees_whole_chunks_and_returns_every_ray_once(count, chunk):
+    """`map_ray_chunks` (rendering and the predictive pass): every call gets the same number
+    of rays (the last chunk padded with the last ray), `extra` rows stay with their rays, and
+    `join_chunks` gives back each real ray once, in order."""
+    index = np.arange(count, dtype=np.float32)
+    rays = mx.RayBundle(
+        origins=jnp.stack([jnp.asarray(index)] * 3, axis=-1).reshape(count, 3),
+        directions=jnp.tile(jnp.asarray([0.0, 0.0, -1.0]), (count, 1)),
+        viewdirs=jnp.tile(jnp.asarray([0.0, 0.0, -1.0]), (count, 1)),
+        radii=jnp.full((count, 1), 1e-3),
+        near=jnp.full((count, 1), 2.0),
+        far=jnp.full((count, 1), 6.0),
+    )
+    seen = []
+
+    def fn(piece, real, extra):
+        seen.append((piece.batch_shape, real))
+        np.testing.assert_array_equal(np.asarray(piece.origins[:, 0]), np.asarray(extra[:, 0]))
+        return {"origin": piece.origins[:, 0], "pair": jnp.stack([piece.origins[:, 0]] * 2)}
+
+    parts, got_count = map_ray_chunks(fn, rays, chunk, extra=index if count else None)
+    assert got_count == count
+    size = max(1, min(chunk, count))
+    assert [shape for shape, _ in seen] == [(size,)] * (-(-count // size))
+    assert sum(real for _, real in seen) == count
+    if count:
+        np.testing.assert_array_equal(join_chunks([p["origin"] for p in parts], count), index)
+        np.testing.assert_array_equal(join_chunks([p["pair"] for p in parts], count, axis=1), [index] * 2)
+    with pytest.raises(ValueError, match="chunk must be at least 1"):
+        map_ray_chunks(fn, rays, 0)
