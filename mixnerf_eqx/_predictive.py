@@ -30,22 +30,17 @@ from ._mixture import LaplaceMixture
 from ._mixture.laplace import laplace_log_density
 from ._model import MixNeRF
 from ._rays import RayBundle
-from ._render import depth_quantile, expected_depth
+from ._render import BISECTION_STEPS, expected_depth, termination_quantile
 from ._renderer import LevelOutputs
 
-# A bisection halves its bracket each step: after 24 halvings the answer lies within 6e-8 of
-# the bracket's width, float32's resolution for answers at least as large as the bracket
-# (colours bracket themselves within about one unit, depths within the ray's bounds). The
-# tolerance on the residual is rarely met exactly in float32, so in practice the solves run to
-# this count (in a batch they run until the slowest is done anyway).
-_BISECTION_STEPS = 24
+# The colour quantiles' bisections take as many halvings as the depth's (colours bracket
+# themselves within about one unit: 24 halvings reach float32's resolution there too).
+_BISECTION_STEPS = BISECTION_STEPS
 _TOLERANCE = 1e-7
 # Each sweep of the mode search strictly raises the density or ends it; few are ever needed.
 _MODE_SWEEPS = 16
 # The relative gain in log density below which the mode search stops moving.
 _MODE_GAIN = 1e-6
-# `depth_quantile`'s tolerance, so that the batched depth quantiles agree with it.
-_DEPTH_TOLERANCE = 1e-6
 
 # Normalised weights with no epsilon: the predictive coefficients sum to one, and a ray whose
 # weights all vanish gets uniform coefficients (see `LaplaceMixture.log_mixing_coefficients`).
@@ -210,38 +205,13 @@ def joint_mode(coefficients: PerSample, location: PerSampleRGB, scale: PerSample
     return solution.value
 
 
-def termination_cdf(t: Float[Array, ""], weights: PerSample, t_edges: Edges) -> Float[Array, ""]:
-    """The probability that the ray terminates before `t`: interval `i` holds
-    `w_i / sum_m w_m`, spread uniformly over it (a zero-width interval's mass counts from its
-    edge on)."""
-    total = jnp.sum(weights)
-    masses = weights / jnp.where(total > 0, total, 1.0)
-    widths = t_edges[1:] - t_edges[:-1]
-    safe_widths = jnp.where(widths > 0, widths, 1.0)
-    covered = jnp.where(widths > 0, jnp.clip((t - t_edges[:-1]) / safe_widths, 0.0, 1.0), t >= t_edges[:-1])
-    return jnp.sum(masses * covered)
-
-
-def termination_quantile(level: ScalarLike, weights: PerSample, t_edges: Edges) -> Float[Array, ""]:
-    """The `level` quantile of where the ray terminates, by bisection bracketed by its first
-    and last edge; the same answer as `depth_quantile` (a ray without weight: its far bound),
-    for a level that may be an array, so that many levels share one batched solve."""
-    level = jnp.asarray(level, t_edges.dtype)
-
-    def residual(t, args):
-        level, weights, t_edges = args
-        return termination_cdf(t, weights, t_edges) - level
-
-    solution = optx.root_find(
-        residual,
-        optx.Bisection(rtol=_DEPTH_TOLERANCE, atol=_DEPTH_TOLERANCE, flip=False),
-        0.5 * (t_edges[0] + t_edges[-1]),
-        args=(level, weights, t_edges),
-        options=dict(lower=t_edges[0], upper=t_edges[-1]),
-        max_steps=_BISECTION_STEPS,
-        throw=False,
-    )
-    return jnp.where(jnp.sum(weights) > 0, solution.value, t_edges[-1])
+def _per_ray(batch_shape: tuple[int, ...], fn, *arrays: Array):
+    """`fn` of one ray, vmapped over the rays of `arrays` (each with `batch_shape` in front,
+    flattened for the vmap), with `batch_shape` restored in front of every output."""
+    count = math.prod(batch_shape)
+    flat = [x.reshape(count, *x.shape[len(batch_shape) :]) for x in arrays]
+    out = jax.vmap(fn)(*flat)
+    return jax.tree_util.tree_map(lambda x: x.reshape(*batch_shape, *x.shape[1:]), out)
 
 
 def _standard_deviation(masses: PerSample, centres: PerSample, component_std: PerSample) -> Float[Array, ""]:
@@ -277,14 +247,7 @@ class ColourMixture(eqx.Module):
         return self.coefficients.shape[:-1]
 
     def _per_ray(self, fn, *extra):
-        # vmap a one-ray function over the flattened batch, and restore the batch shape.
-        count = math.prod(self.batch_shape)
-        flat = jax.tree_util.tree_map(
-            lambda x: x.reshape(count, *x.shape[len(self.batch_shape) :]),
-            (self.coefficients, self.location, self.scale, *extra),
-        )
-        out = jax.vmap(fn)(*flat)
-        return jax.tree_util.tree_map(lambda x: x.reshape(*self.batch_shape, *x.shape[1:]), out)
+        return _per_ray(self.batch_shape, fn, self.coefficients, self.location, self.scale, *extra)
 
     def mean(self) -> Float[Array, "*batch channels"]:
         """`sum_j pi_j mu_jc`."""
@@ -384,10 +347,7 @@ class TerminationDistribution(eqx.Module):
         return self.weights.shape[:-1]
 
     def _per_ray(self, fn):
-        count = math.prod(self.batch_shape)
-        weights = self.weights.reshape(count, self.weights.shape[-1])
-        edges = self.t_edges.reshape(count, self.t_edges.shape[-1])
-        return jax.vmap(fn)(weights, edges).reshape(self.batch_shape)
+        return _per_ray(self.batch_shape, fn, self.weights, self.t_edges)
 
     def mean(self) -> Float[Array, "*batch"]:
         """The expected termination distance (`expected_depth`, what the renderer reports)."""
@@ -414,17 +374,13 @@ class TerminationDistribution(eqx.Module):
         def one_ray(weights: PerSample, t_edges: Edges) -> Float[Array, " _"]:
             return jax.vmap(termination_quantile, in_axes=(0, None, None))(levels_array, weights, t_edges)
 
-        count = math.prod(self.batch_shape)
-        weights = self.weights.reshape(count, self.weights.shape[-1])
-        edges = self.t_edges.reshape(count, self.t_edges.shape[-1])
-        out = jax.vmap(one_ray)(weights, edges)
-        return out.T.reshape(levels_array.shape[0], *self.batch_shape)
+        return jnp.moveaxis(self._per_ray(one_ray), len(self.batch_shape), 0)
 
     def quantile(self, level: ScalarLike) -> Float[Array, "*batch"]:
-        """The `level` quantile of the termination distance (`depth_quantile`, by bisection
+        """The `level` quantile of the termination distance (`termination_quantile`, by bisection
         bracketed by the ray's first and last edge)."""
         level = _check_level(level, dtype=self.weights.dtype)
-        return self._per_ray(lambda weights, t_edges: depth_quantile(weights, t_edges, level))
+        return self._per_ray(lambda weights, t_edges: termination_quantile(level, weights, t_edges))
 
     def median(self) -> Float[Array, "*batch"]:
         return self.quantile(0.5)
