@@ -1,6 +1,12 @@
 """What the command lines share: one `error:` line for a problem the user can fix."""
 
+import argparse
 import sys
+from collections.abc import Callable
+
+from ._compilation_cache import use_compilation_cache
+from ._interrupt import deferred_interrupts
+from ._typecheck import typecheck_argument
 
 
 def report_error(error: Exception) -> int:
@@ -15,3 +21,26 @@ def report_error(error: Exception) -> int:
     else:
         print(f"error: {error}", file=sys.stderr)
     return 2
+
+
+def run_command(
+    args: argparse.Namespace, body: Callable[[], object], *, interrupted: str | None = None
+) -> int:
+    """Runs a command line's `body` as `eval` and `render` do, and returns the exit status.
+
+    The compilation cache and the type-check switch follow `args`; Ctrl-C is deferred to the
+    command's safe points. A problem the user can fix (a `ValueError`: configs, datasets and
+    arguments raise subclasses of it; or an `OSError`) becomes one `error:` line and status 2;
+    Ctrl-C becomes status 130, after the line `interrupted` where one is given.
+    """
+    use_compilation_cache(args)
+    try:
+        with typecheck_argument(args), deferred_interrupts():
+            body()
+    except (ValueError, OSError) as error:
+        return report_error(error)
+    except KeyboardInterrupt:
+        if interrupted:
+            print(f"\ninterrupted: {interrupted}", file=sys.stderr)
+        return 130
+    return 0

@@ -18,7 +18,7 @@ from ._custom_types import FourKeysPerRay, PRNGKey, RayKeys
 from ._field import AbstractField, FieldOutputs, GridField, HashEncoding, MipNeRFField, TriPlaneEncoding
 from ._field.grid import level_resolutions
 from ._mixture import AbstractMixture, LaplaceMixture
-from ._rays import RayBundle, RaySamples
+from ._rays import Box, RayBundle, RaySamples, radius_box
 from ._renderer import AbstractRenderer, LevelOutputs, VolumeRenderer
 from ._sampler import AbstractSampler, HierarchicalSampler, StratifiedSampler
 
@@ -162,9 +162,6 @@ class MixNeRF(eqx.Module):
         return jax.tree_util.tree_map(lambda x: x.reshape(*batch_shape, *x.shape[1:]), outputs)
 
 
-Box = tuple[tuple[float, float, float], tuple[float, float, float]]
-
-
 def _mlp_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> MipNeRFField:
     """The paper's field: the mip-NeRF MLP (`[model]`)."""
     del scene_box  # the MLP's integrated encoding needs no box
@@ -191,13 +188,11 @@ def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box:
     colour padding from `[model]`). It spans `[-r, r]^3` when `config.grid.box_radius = r > 0`
     (the scene lies inside; nothing outside), and otherwise `scene_box`."""
     grid, model_cfg = config.grid, config.model
-    if grid.box_radius > 0:
-        radius = grid.box_radius
-        scene_box, bounded = ((-radius,) * 3, (radius,) * 3), True
-    elif scene_box is None:
+    box = radius_box(grid.box_radius)
+    bounded = box is not None
+    scene_box = box if bounded else scene_box
+    if scene_box is None:
         raise ValueError("a grid field with grid.box_radius = 0 needs the scene's box (scene_box)")
-    else:
-        bounded = False
     encoding_key, decoder_key = jax.random.split(key)
     resolutions = level_resolutions(grid.levels, grid.min_resolution, grid.max_resolution)
     if grid.encoding == "triplane":

@@ -14,11 +14,23 @@ the OpenGL camera, so its camera z-component is still -1.
 """
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from ._custom_types import PoseStack
+
+# An axis-aligned box: its lowest and highest corner.
+Box = tuple[tuple[float, float, float], tuple[float, float, float]]
+
+
+def radius_box(radius: float) -> Box | None:
+    """The box `[-radius, radius]^3` that a config's `box_radius > 0` asks for (the scene
+    lies inside it), or `None` for `box_radius = 0` (use the training rays' box instead)."""
+    if radius <= 0:
+        return None
+    return (-float(radius),) * 3, (float(radius),) * 3
 
 
 class RayBundle(eqx.Module):
@@ -48,25 +60,13 @@ class RayBundle(eqx.Module):
         return self.origins.shape[:-1]
 
     def reshape(self, *shape: int) -> "RayBundle":
-        """Returns the same rays with the batch dimensions reshaped to `shape`."""
-        return RayBundle(
-            origins=self.origins.reshape(*shape, 3),
-            directions=self.directions.reshape(*shape, 3),
-            viewdirs=self.viewdirs.reshape(*shape, 3),
-            radii=self.radii.reshape(*shape, 1),
-            near=self.near.reshape(*shape, 1),
-            far=self.far.reshape(*shape, 1),
-        )
+        """Returns the same rays with the batch dimensions reshaped to `shape` (every field
+        keeps its last axis)."""
+        return jax.tree_util.tree_map(lambda x: x.reshape(*shape, x.shape[-1]), self)
 
     def __getitem__(self, index) -> "RayBundle":
-        return RayBundle(
-            origins=self.origins[index],
-            directions=self.directions[index],
-            viewdirs=self.viewdirs[index],
-            radii=self.radii[index],
-            near=self.near[index],
-            far=self.far[index],
-        )
+        """The rays at `index` of the batch dimensions, every field alike."""
+        return jax.tree_util.tree_map(lambda x: x[index], self)
 
 
 class RaySamples(eqx.Module):

@@ -23,7 +23,7 @@ from ._custom_types import PoseStack, PRNGKey
 from ._loss import LossTerms, LossWeights, loss_fn, needs_patches
 from ._model import MixNeRF, build_model
 from ._occupancy import OccupancyGrid, empty_grid, frustum_box, update_occupancy
-from ._rays import RayBundle
+from ._rays import Box, RayBundle, radius_box
 from ._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
 from .data import Dataset, rays_at_poses, rays_for_views
 
@@ -48,7 +48,7 @@ def make_optimizer(optim: OptimConfig, learning_rate: optax.Schedule) -> optax.G
     return optax.chain(*parts)
 
 
-def scene_box(dataset: Dataset) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+def scene_box(dataset: Dataset) -> Box:
     """The box of the training rays between near and far (in NDC for LLFF scenes), grown by
     1% on every side: every sample a training ray can place lies inside."""
     low, high = frustum_box(rays_for_views(dataset.train, dataset.near, dataset.far))
@@ -62,12 +62,9 @@ def make_occupancy_grid(occupancy: OccupancyConfig, dataset: Dataset) -> Occupan
     inside it; otherwise it spans the box of the training rays between near and far (in NDC
     for LLFF scenes) and points outside it count as occupied.
     """
-    if occupancy.box_radius > 0:
-        radius = occupancy.box_radius
-        box_min, box_max, outside_occupied = (-radius,) * 3, (radius,) * 3, False
-    else:
-        box_min, box_max = scene_box(dataset)
-        outside_occupied = True
+    box = radius_box(occupancy.box_radius)
+    outside_occupied = box is None
+    box_min, box_max = scene_box(dataset) if box is None else box
     return empty_grid(
         box_min,
         box_max,

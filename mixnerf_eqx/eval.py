@@ -18,16 +18,15 @@ import jax
 import numpy as np
 
 from . import _json as strict_json
-from ._cli import report_error
-from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
+from ._cli import run_command
+from ._compilation_cache import add_compilation_cache_argument
 from ._config import ConfigError
 from ._evaluate import Rendered, evaluate
-from ._interrupt import deferred_interrupts
 from ._progress import Progress
 from ._run import Run, grid_for_rendering, make_skipping, render_summary, restore_run, write_view_renders
-from ._typecheck import add_typecheck_argument, typecheck_argument
+from ._typecheck import add_typecheck_argument
 from ._uncertainty import calibration_report, predict_views, write_uncertainty_maps
-from .data import DatasetError, evenly_spaced
+from .data import evenly_spaced
 from .metrics import lpips_available
 
 METRIC_COLUMNS = ("psnr", "ssim", "lpips", "average", "depth_mae")
@@ -249,17 +248,12 @@ def _check_arguments(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    use_compilation_cache(args)
-    try:
-        with typecheck_argument(args), deferred_interrupts():
-            _check_arguments(args)
-            run(args)
-    except (ConfigError, DatasetError, ValueError, OSError) as error:
-        return report_error(error)
-    except KeyboardInterrupt:
-        print("\ninterrupted: evaluation stopped; nothing was changed in the run", file=sys.stderr)
-        return 130
-    return 0
+
+    def body() -> None:
+        _check_arguments(args)
+        run(args)
+
+    return run_command(args, body, interrupted="evaluation stopped; nothing was changed in the run")
 
 
 if __name__ == "__main__":

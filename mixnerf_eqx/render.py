@@ -17,16 +17,14 @@ import jax
 import numpy as np
 
 from . import _json as strict_json
-from ._cli import report_error
-from ._compilation_cache import add_compilation_cache_argument, use_compilation_cache
+from ._cli import run_command
+from ._compilation_cache import add_compilation_cache_argument
 from ._config import ConfigError
-from ._interrupt import deferred_interrupts
 from ._progress import Progress
 from ._rays import RayBundle
 from ._run import Run, grid_for_rendering, make_skipping, restore_run
-from ._typecheck import add_typecheck_argument, typecheck_argument
+from ._typecheck import add_typecheck_argument
 from ._video import check_destination, render_video
-from .data import DatasetError
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -166,16 +164,12 @@ def run(args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    use_compilation_cache(args)
-    try:
-        with typecheck_argument(args), deferred_interrupts():
-            _check_arguments(args)
-            run(args)
-    except (ConfigError, DatasetError, ValueError, OSError) as error:
-        return report_error(error)
-    except KeyboardInterrupt:
-        return 130
-    return 0
+
+    def body() -> None:
+        _check_arguments(args)
+        run(args)
+
+    return run_command(args, body, interrupted=None)
 
 
 if __name__ == "__main__":

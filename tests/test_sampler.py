@@ -242,3 +242,9 @@ def test_sampler_call_puts_means_on_the_ray_at_frustum_means(frustum, level):
     expected = origin + np.asarray(t_mean)[:, None] * direction
     np.testing.assert_allclose(np.asarray(samples.means), expected, rtol=1e-5, atol=1e-5)
     assert np.all(np.asarray(samples.covs) > 0)
+
+
+@pytest.mark.parametrize("sampler", [StratifiedSampler, HierarchicalSampler])
+def test_every_sampler_refuses_fewer_than_one_sample(sampler):
+    with pytest.raises(ValueError, match="num_samples must be at least 1, got 0"):
+        sampler(num_samples=0)

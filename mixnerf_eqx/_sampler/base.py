@@ -18,6 +18,10 @@ class AbstractSampler(eqx.Module):
     num_samples: eqx.AbstractVar[int]
     frustum: eqx.AbstractVar[Literal["cone", "cylinder"]]
 
+    def __check_init__(self):
+        if self.num_samples < 1:
+            raise ValueError(f"num_samples must be at least 1, got {self.num_samples}")
+
     @abc.abstractmethod
     def sample_edges(
         self,

@@ -77,10 +77,6 @@ class HierarchicalSampler(AbstractSampler):
     resample_padding: float = eqx.field(static=True, default=0.01)
     stop_gradient: bool = eqx.field(static=True, default=True)
 
-    def __check_init__(self):
-        if self.num_samples < 1:
-            raise ValueError(f"num_samples must be at least 1, got {self.num_samples}")
-
     def sample_edges(
         self,
         ray: RayBundle,

@@ -23,10 +23,6 @@ class StratifiedSampler(AbstractSampler):
     frustum: Literal["cone", "cylinder"] = eqx.field(static=True, default="cone")
     lindisp: bool = eqx.field(static=True, default=False)
 
-    def __check_init__(self):
-        if self.num_samples < 1:
-            raise ValueError(f"num_samples must be at least 1, got {self.num_samples}")
-
     def sample_edges(
         self,
         ray: RayBundle,
