@@ -68,7 +68,7 @@ def field_points(config: mx.Config, key: jax.Array) -> tuple[jax.Array, jax.Arra
 
 def summed_field(model: mx.MixNeRF, means, covs, viewdirs, keys=None) -> jax.Array:
     """The field (as the model calls it: flat points, remat if configured), outputs summed."""
-    outputs = model.evaluate_points(means, covs, viewdirs, keys)
+    outputs = model.query_points(means, covs, viewdirs, keys)
     return sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(outputs))
 
 

@@ -1,7 +1,7 @@
 """The MixNeRF model: a field, two samplers, a renderer and a mixture in one pytree.
 
 Rendering a level is three steps, each a method of the model: `sample_*` places the samples
-(the samplers), `evaluate` calls the field at them, `composite` turns the field's outputs into
+(the samplers), `query_field` calls the field at them, `composite` turns the field's outputs into
 pixels (the renderer). The dense render (`__call__`) and the render that skips empty space
 (`mixnerf_eqx._skipping`) run the same three steps; the second only evaluates fewer samples.
 """
@@ -75,7 +75,7 @@ class MixNeRF(eqx.Module):
         """The fine samples of a flat batch of rays, drawn from the coarse level's weights."""
         return _vmap_sampler(self.fine_sampler, rays, coarse.t_edges, coarse.weights, keys=keys)
 
-    def evaluate_points(
+    def query_points(
         self,
         means: Float[Array, "batch 3"],
         covs: Float[Array, "batch 3"],
@@ -93,7 +93,7 @@ class MixNeRF(eqx.Module):
             evaluate = jax.checkpoint(evaluate)
         return evaluate(self.field, means, covs, viewdirs, keys)
 
-    def evaluate(self, samples: RaySamples, rays: RayBundle, keys: RayKeys | None = None) -> FieldOutputs:
+    def query_field(self, samples: RaySamples, rays: RayBundle, keys: RayKeys | None = None) -> FieldOutputs:
         """The field at every sample of a flat batch of rays (`keys`: one per ray, or `None`)."""
         num_rays, num_samples = samples.means.shape[:2]
         points = num_rays * num_samples
@@ -103,7 +103,7 @@ class MixNeRF(eqx.Module):
             # Per ray, one key per sample, as `jax.random.split(ray_key, num_samples)`.
             point_keys = jax.vmap(lambda k: jax.random.split(k, num_samples))(keys)
             point_keys = point_keys.reshape(points, *point_keys.shape[2:])
-        outputs = self.evaluate_points(
+        outputs = self.query_points(
             samples.means.reshape(points, 3),
             samples.covs.reshape(points, 3),
             viewdirs.reshape(points, 3),
@@ -126,9 +126,9 @@ class MixNeRF(eqx.Module):
             return None if ray_keys is None else ray_keys[:, index]
 
         coarse_samples = self.sample_coarse(rays, keys(0))
-        coarse = self.composite(self.evaluate(coarse_samples, rays, keys(1)), coarse_samples, rays)
+        coarse = self.composite(self.query_field(coarse_samples, rays, keys(1)), coarse_samples, rays)
         fine_samples = self.sample_fine(rays, coarse, keys(2))
-        fine = self.composite(self.evaluate(fine_samples, rays, keys(3)), fine_samples, rays)
+        fine = self.composite(self.query_field(fine_samples, rays, keys(3)), fine_samples, rays)
         return RenderOutputs(coarse=coarse, fine=fine)
 
     def render_ray(self, ray: RayBundle, *, key: PRNGKey | None = None) -> RenderOutputs:

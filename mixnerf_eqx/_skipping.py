@@ -1,7 +1,7 @@
 """Rendering that skips empty space and finished rays, through the model's own steps.
 
 The dense render evaluates the field at every sample of every ray. This one runs the same
-three steps of the model (`MixNeRF.sample_*`, `evaluate_points`, `composite`) but evaluates
+three steps of the model (`MixNeRF.sample_*`, `query_points`, `composite`) but evaluates
 the field only where it can matter:
 
 - empty space: samples in cells that an `OccupancyGrid` marks empty get the outputs of zero
@@ -150,7 +150,7 @@ def _evaluate_segment(
     (index,) = jnp.nonzero(flat, size=capacity, fill_value=flat.size)
     safe = jnp.minimum(index, flat.size - 1)
     ray_index, sample_index = safe // length, lo + safe % length
-    evaluated = model.evaluate_points(
+    evaluated = model.query_points(
         samples.means[ray_index, sample_index],
         samples.covs[ray_index, sample_index],
         rays.viewdirs[ray_index],
@@ -166,7 +166,7 @@ def _evaluate_segment(
 
 def _unevaluated(model: MixNeRF, samples: RaySamples, rays: RayBundle) -> FieldOutputs:
     """Zeros shaped like the field's outputs at every sample: density zero adds nothing."""
-    shapes = jax.eval_shape(model.evaluate, samples, rays)
+    shapes = jax.eval_shape(model.query_field, samples, rays)
     return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
 
