@@ -143,6 +143,9 @@ class TrainConfig:
     run_dir: str = "runs/builtin"  # where checkpoints, metrics and renders go
     max_nonfinite_steps: int = 20  # stop after this many consecutive skipped (non-finite) steps
     data_parallel: Literal["auto", "on", "off"] = "auto"  # split each batch over every device (auto: if >1)
+    # Where the training log goes: train_log.jsonl (always: the source of truth), and with
+    # "tensorboard" also event files in RUN_DIR/tensorboard/ (the [tensorboard] extra).
+    log_to: tuple[Literal["jsonl", "tensorboard"], ...] = ("jsonl",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -349,6 +352,11 @@ def _consistency_problems(config: "Config") -> list[str]:
         problems.append(
             "occupancy.calibrate needs occupancy.density_threshold > 0 (the first threshold tried)"
         )
+    if "jsonl" not in config.train.log_to:
+        problems.append(
+            f'train.log_to must hold "jsonl" (the log that resuming and every report read), got '
+            f"{list(config.train.log_to)}"
+        )
     return problems
 
 
@@ -435,6 +443,11 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
             except ConfigError:
                 continue
         raise ConfigError(f"{where}: {value!r} does not match {annotation}")
+    if origin is tuple:
+        item, *rest = typing.get_args(annotation)
+        if rest != [Ellipsis] or not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        return tuple(_coerce(entry, item, where) for entry in value)
     if annotation is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{where}: expected true or false, got {value!r}")

@@ -172,6 +172,7 @@ _COSMETIC = {
         "render_chunk",
         "run_dir",
         "max_nonfinite_steps",
+        "log_to",
     ),
     # Validation views are only scored: they change no step.
     "data": ("data_dir", "dtu_mask_dir", "num_val_views", "max_val_views"),

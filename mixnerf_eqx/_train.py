@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
+import numpy as np
 
 from . import _json as strict_json
 from ._checkpoint import (
@@ -29,6 +30,7 @@ from ._checkpoint import (
 )
 from ._config import Config, ConfigError, SettingWarning, config_to_dict, setting_warnings
 from ._evaluate import Evaluation, Rendered, evaluate
+from ._images import colourise_depth
 from ._interrupt import deferred_interrupts, raise_if_interrupted
 from ._lock import LOCK_NAME, hold_folder
 from ._model import MixNeRF
@@ -42,6 +44,7 @@ from ._run import (
     write_view_renders,
 )
 from ._sharding import DataParallel, data_parallel_mesh
+from ._tensorboard import TensorBoardLog
 from ._train_state import (
     StepMetrics,
     TrainState,
@@ -52,6 +55,7 @@ from ._train_state import (
     training_rays,
     update_grid,
 )
+from ._uncertainty import predict_views
 from .data import Dataset, evenly_spaced, load_dataset
 
 
@@ -89,8 +93,9 @@ def _scalars(metrics: StepMetrics) -> dict[str, float]:
 class _RunLog:
     """The loss history: `train_log.jsonl` in the run folder, a list, and the progress bar."""
 
-    def __init__(self, run_dir: Path, start: int, total: int, progress: bool):
+    def __init__(self, run_dir: Path, start: int, total: int, progress: bool, tensorboard: bool = False):
         self.path = run_dir / "train_log.jsonl"
+        self.tensorboard = TensorBoardLog(run_dir) if tensorboard else None
         # Entries past the checkpoint belong to a run that ended without saving them (a crash
         # or a kill): the resumed run redoes those steps, so the log keeps one entry per step.
         _truncate_log(self.path, start)
@@ -107,6 +112,8 @@ class _RunLog:
         self.timer, self.logged = now, done
         self.history.append(entry)
         self._write(entry)
+        if self.tensorboard is not None:
+            self.tensorboard.step(entry)
         self.progress.update(
             done,
             loss=f"{entry['loss']:.4f}",
@@ -115,10 +122,14 @@ class _RunLog:
             skipped=skipped_total,
         )
 
-    def evaluation(self, done: int, means: dict[str, Any]) -> None:
+    def evaluation(
+        self, done: int, means: dict[str, Any], images: dict[str, np.ndarray] | None = None
+    ) -> None:
         shown = ", ".join(f"{k} {v:.4f}" for k, v in means.items() if v is not None)
         self.progress.write(f"step {done}: validation {shown}")
         self._write({"step": done, "eval": means, "split": "val"})
+        if self.tensorboard is not None:
+            self.tensorboard.evaluation(done, means, images or {})
         self.evaluated.add(done)
 
     def _write(self, entry: dict[str, Any]) -> None:
@@ -130,10 +141,14 @@ class _RunLog:
         """Forces the log to disk (with each checkpoint: a resumed run keeps its history)."""
         if not self.file.closed:
             os.fsync(self.file.fileno())
+        if self.tensorboard is not None:
+            self.tensorboard.flush()
 
     def close(self) -> None:
         self.progress.close()
         self.file.close()
+        if self.tensorboard is not None:
+            self.tensorboard.close()
 
 
 def _truncate_log(log_path: Path, last_step: int) -> None:
@@ -257,16 +272,52 @@ def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) 
     return chosen, state
 
 
-def _periodic_evaluation(config: Config, dataset: Dataset, state: TrainState) -> dict[str, Any]:
+def _periodic_evaluation(
+    config: Config, dataset: Dataset, state: TrainState, *, with_images: bool = False
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Metrics of `train.num_eval_views` validation views, evenly spaced, without LPIPS: the
-    test views are scored once, at the end."""
+    test views are scored once, at the end. With `with_images`, also the first view's colour,
+    depth, error and (with mixture heads) predictive colour spread, as RGB images."""
     assert dataset.val is not None
     ids = evenly_spaced(dataset.val.num_views, min(config.train.num_eval_views, dataset.val.num_views))
     skipping = None if state.grid is None else make_skipping(config.occupancy, state.grid)
     chunk = config.train.render_chunk if skipping is None else config.occupancy.chunk
-    return evaluate(
-        state.model, dataset, chunk=chunk, view_ids=ids, with_lpips=False, skipping=skipping, split="val"
+    images: dict[str, np.ndarray] = {}
+
+    def keep_first(index: int, metrics: dict[str, Any], rendered: Rendered) -> None:
+        if with_images and index == 0:
+            truth = dataset.val.images[ids[0]]
+            images.update(_evaluation_images(rendered, truth, dataset.near, dataset.far))
+
+    means = evaluate(
+        state.model,
+        dataset,
+        chunk=chunk,
+        view_ids=ids,
+        with_lpips=False,
+        skipping=skipping,
+        split="val",
+        on_view=keep_first,
     ).means
+    if with_images and state.model.field.has_mixture_heads:
+        maps = predict_views(state.model, dataset.val.select(ids[:1]), dataset.near, dataset.far, chunk)
+        images["colour_spread"] = _grey(maps["colour_std"][0].mean(axis=-1) / 0.5)
+    return means, images
+
+
+def _grey(values: np.ndarray) -> np.ndarray:
+    return np.repeat(np.clip(values, 0.0, 1.0)[..., None], 3, axis=-1)
+
+
+def _evaluation_images(
+    rendered: Rendered, truth: np.ndarray, near: float, far: float
+) -> dict[str, np.ndarray]:
+    """One view's colour, depth (coloured from `near` to `far`) and error (white: 0.5 or more)."""
+    return {
+        "colour": rendered.rgb,
+        "depth": colourise_depth(rendered.depth, near, far),
+        "error": _grey(np.abs(rendered.rgb - truth).mean(axis=-1) / 0.5),
+    }
 
 
 def fit(
@@ -344,7 +395,8 @@ def _fit_holding(
     if eval_every and dataset.val is None:
         print(f"no periodic evaluation: {dataset.name} has no validation views ({dataset.val_source})")
         eval_every = 0
-    log = _RunLog(run_dir, start, train.max_steps, progress)
+    images = "tensorboard" in train.log_to
+    log = _RunLog(run_dir, start, train.max_steps, progress, tensorboard=images)
     guard = _Guard(train.max_nonfinite_steps, run_dir)
     try:
         # Ctrl-C stops the loop only between steps or between chunks of a render, so the
@@ -354,7 +406,7 @@ def _fit_holding(
                 # The step resumed from is due an evaluation that the log lacks: a Ctrl-C during
                 # it checkpointed the step without it (a kill leaves an older checkpoint, and the
                 # loop redoes the step and its evaluation), or eval_every changed since.
-                log.evaluation(start, _periodic_evaluation(config, dataset, state))
+                log.evaluation(start, *_periodic_evaluation(config, dataset, state, with_images=images))
                 raise_if_interrupted()
             for done in range(start + 1, last_step + 1):
                 state, metrics = take_step(state, draw(data, state, train.batch_size))
@@ -367,7 +419,7 @@ def _fit_holding(
                 if state.grid is not None and _due(done, config.occupancy.update_every):
                     state = update_grid(state, config.occupancy)
                 if evaluate_now:
-                    log.evaluation(done, _periodic_evaluation(config, dataset, state))
+                    log.evaluation(done, *_periodic_evaluation(config, dataset, state, with_images=images))
                 # No checkpoint inside a run of skipped steps: the last good one must stay the
                 # newest, so that a diverging run can be resumed from before the trouble began.
                 if checkpoint_now and not guard.streak:

@@ -21,6 +21,7 @@ from . import _json as strict_json
 from ._cli import run_command
 from ._compilation_cache import add_compilation_cache_argument
 from ._config import ConfigError
+from ._curves import plot_curves
 from ._evaluate import Rendered, evaluate
 from ._progress import Progress
 from ._run import Run, grid_for_rendering, make_skipping, render_summary, restore_run, write_view_renders
@@ -212,6 +213,8 @@ def run(args: argparse.Namespace) -> dict:
         result["uncertainty"] = _uncertainty(
             restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
         )
+    curves = plot_curves(run_dir)
+    result["curves"] = None if curves is None else str(curves)
     (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
     _print_summary(result, grid, choice, out, not args.no_renders)
     return result

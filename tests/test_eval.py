@@ -6,6 +6,7 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from PIL import Image
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import evaluate, fit, render_rays, render_views
@@ -77,6 +78,12 @@ def test_eval_command_reproduces_the_training_metrics(trained, tiny_scene, capsy
     pngs = sorted(p.name for p in (trained.run_dir / "eval").glob("*.png"))
     assert len(pngs) == 3 * tiny_scene.test.num_views
     assert any(name.endswith("_depth.png") for name in pngs)
+    # The run folder explains itself: its training curves, drawn from the log.
+    assert written["curves"] == str(trained.run_dir / "curves.png")
+    with Image.open(trained.run_dir / "curves.png") as curves:
+        assert curves.size == (1500, 400)
+        pixels = np.asarray(curves.convert("L"))
+    assert pixels.min() < 100 < 200 < pixels.max()  # lines drawn on a light background
 
 
 def test_eval_of_the_validation_views(trained, tiny_scene, capsys):
@@ -201,3 +208,13 @@ def test_the_chunk_map_sees_whole_chunks_and_returns_every_ray_once(count, chunk
         np.testing.assert_array_equal(join_chunks([p["pair"] for p in parts], count, axis=1), [index] * 2)
     with pytest.raises(ValueError, match="chunk must be at least 1"):
         map_ray_chunks(fn, rays, 0)
+
+
+def test_curves_need_a_log_and_plot_every_non_zero_term(trained, tmp_path, capsys):
+    from mixnerf_eqx._curves import plot_curves, read_log
+
+    assert plot_curves(tmp_path) is None
+    assert "does not exist" in capsys.readouterr().out
+    steps, evaluations = read_log(trained.run_dir / "train_log.jsonl")
+    assert steps and all("psnr" in entry for entry in steps)
+    assert plot_curves(trained.run_dir, tmp_path / "c.png") == tmp_path / "c.png"

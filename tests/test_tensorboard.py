@@ -1,0 +1,109 @@
+"""`train.log_to = ["jsonl", "tensorboard"]`: the event files hold what the JSONL holds.
+
+The event files are read back here with a reader of their own (TFRecord framing, then
+tensorboardX's `Event` protocol buffer), not with the writer's code.
+"""
+
+import dataclasses
+import json
+import struct
+
+import numpy as np
+import pytest
+
+import mixnerf_eqx as mx
+
+pytest.importorskip("tensorboardX")
+from tensorboardX.proto import event_pb2  # noqa: E402
+
+
+def read_events(folder):
+    """Every `(tag, step, value)` scalar and `(tag, step, height, width)` image in the event
+    files of `folder`."""
+    scalars, images = [], []
+    for path in sorted(folder.glob("events.out.tfevents.*")):
+        data = path.read_bytes()
+        offset = 0
+        while offset < len(data):
+            (length,) = struct.unpack("<Q", data[offset : offset + 8])
+            record = data[offset + 12 : offset + 12 + length]
+            offset += 12 + length + 4  # length, its CRC, the record, its CRC
+            event = event_pb2.Event.FromString(record)
+            for value in event.summary.value:
+                if value.HasField("image"):
+                    images.append((value.tag, event.step, value.image.height, value.image.width))
+                else:
+                    scalars.append((value.tag, event.step, value.simple_value))
+    return scalars, images
+
+
+@pytest.fixture(scope="module")
+def logged_run(tmp_path_factory):
+    from helpers import TINY_OVERRIDES
+
+    run_dir = tmp_path_factory.mktemp("tb") / "run"
+    overrides = [
+        *TINY_OVERRIDES,
+        'train.log_to=["jsonl", "tensorboard"]',
+        "train.max_steps=6",
+        "train.eval_every=3",
+        "train.num_eval_views=1",
+        f'train.run_dir="{run_dir}"',
+    ]
+    config = mx.load_config("builtin", overrides)
+    mx.fit(config, progress=False, write_renders=False, log_every=2)
+    return run_dir
+
+
+def test_the_event_files_hold_every_logged_scalar(logged_run):
+    entries = [json.loads(line) for line in (logged_run / "train_log.jsonl").read_text().splitlines()]
+    scalars, _ = read_events(logged_run / "tensorboard")
+    got = {(tag, step): value for tag, step, value in scalars}
+    expected = {}
+    for entry in entries:
+        if "eval" in entry:
+            for name, value in entry["eval"].items():
+                if value is not None:
+                    expected[f"val/{name}", entry["step"]] = value
+        else:
+            for name, value in entry.items():
+                if name != "step" and isinstance(value, (int, float)) and np.isfinite(value):
+                    expected[f"train/{name}", entry["step"]] = value
+    assert {"train/loss", "train/psnr", "train/lr", "train/nll_colour", "val/psnr"} <= {
+        t for t, _ in expected
+    }
+    assert set(got) == set(expected)
+    for key, value in expected.items():
+        assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-30), key
+
+
+def test_each_evaluation_writes_its_images(logged_run):
+    _, images = read_events(logged_run / "tensorboard")
+    found = {(tag, step): (height, width) for tag, step, height, width in images}
+    names = ("val/colour", "val/depth", "val/error", "val/colour_spread")
+    assert set(found) == {(name, step) for name in names for step in (3,)}
+    assert set(found.values()) == {(32, 32)}
+
+
+def test_the_jsonl_stays_required():
+    with pytest.raises(mx.ConfigError, match='train.log_to must hold "jsonl"'):
+        mx.load_config("builtin", ['train.log_to=["tensorboard"]'])
+    config = mx.load_config("builtin")
+    assert config.train.log_to == ("jsonl",)
+    assert dataclasses.replace(config.train, log_to=("jsonl", "tensorboard")).log_to[1] == "tensorboard"
+
+
+def test_a_sweep_writes_one_tensorboard_run_per_scene_and_seed(tmp_path):
+    from helpers import TINY_OVERRIDES
+
+    from mixnerf_eqx import sweep
+
+    overrides = [o for o in TINY_OVERRIDES if not o.startswith("train.max_steps")]
+    overrides += ["train.max_steps=4", "data.num_test_views=1", 'train.log_to=["jsonl", "tensorboard"]']
+    arguments = ["--config", "builtin", "--seeds", "0,1", "--out", str(tmp_path), "--no-progress"]
+    assert sweep.main([*arguments, *overrides]) == 0
+    folders = sorted(path.parent.relative_to(tmp_path) for path in tmp_path.rglob("events.out.tfevents.*"))
+    assert [str(folder) for folder in folders] == ["builtin/seed_0/tensorboard", "builtin/seed_1/tensorboard"]
+    for folder in folders:
+        scalars, _ = read_events(tmp_path / folder)
+        assert {step for tag, step, _ in scalars if tag == "train/loss"} == {4}
