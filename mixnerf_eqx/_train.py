@@ -98,8 +98,7 @@ class _RunLog:
         self.tensorboard = TensorBoardLog(run_dir) if tensorboard else None
         # Entries past the checkpoint belong to a run that ended without saving them (a crash
         # or a kill): the resumed run redoes those steps, so the log keeps one entry per step.
-        _truncate_log(self.path, start)
-        self.evaluated = _evaluated_steps(self.path)
+        self.evaluated = _truncate_log(self.path, start)
         self.file = open(self.path, "a")  # noqa: SIM115 (closed by `close`)
         self.history: list[dict[str, Any]] = []
         self.progress = Progress(total, initial=start, unit="step", enabled=progress)
@@ -151,32 +150,28 @@ class _RunLog:
             self.tensorboard.close()
 
 
-def _truncate_log(log_path: Path, last_step: int) -> None:
+def _truncate_log(log_path: Path, last_step: int) -> set[int]:
     """Drops the entries of `log_path` logged after step `last_step` (none if it is absent),
-    and a last line cut short by a kill."""
+    and a last line cut short by a kill; returns the steps that the kept log holds a periodic
+    evaluation of (one pass over the file)."""
     if not log_path.is_file():
-        return
-
-    def keep(line: str) -> bool:
-        try:
-            return json.loads(line).get("step", 0) <= last_step
-        except json.JSONDecodeError:
-            return False
-
+        return set()
     lines = log_path.read_text().splitlines()
-    kept = [line for line in lines if keep(line)]
+    kept, evaluated = [], set()
+    for line in lines:
+        try:
+            entry = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if entry.get("step", 0) <= last_step:
+            kept.append(line)
+            if "eval" in entry:
+                evaluated.add(entry["step"])
     if len(kept) != len(lines):
         temporary = log_path.with_suffix(".jsonl.tmp")
         temporary.write_text("".join(line + "\n" for line in kept))
         temporary.replace(log_path)
-
-
-def _evaluated_steps(log_path: Path) -> set[int]:
-    """The steps that `log_path` holds a periodic evaluation of."""
-    if not log_path.is_file():
-        return set()
-    entries = (json.loads(line) for line in log_path.read_text().splitlines() if line.strip())
-    return {entry["step"] for entry in entries if "eval" in entry}
+    return evaluated
 
 
 class _Guard:
