@@ -91,6 +91,7 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._rays import RayBundle as RayBundle
     from ._rays import RaySamples as RaySamples
     from ._rays import camera_rays as camera_rays
+    from ._rays import pixel_directions as pixel_directions
     from ._render import blend_weights as blend_weights
     from ._render import composite_rgb as composite_rgb
     from ._render import depth_quantile as depth_quantile

@@ -93,3 +93,17 @@ def test_the_check_sees_a_lower_import(tmp_path):
     assert imported_units(sample) == {"_custom_types.py"}
     assert {"_train_state.py", "_sharding.py", "_checkpoint.py"} <= imported_units(PACKAGE / "_train.py")
     assert "_train.py" in imported_units(PACKAGE / "__init__.py")
+
+
+def test_benchmarks_use_the_public_api():
+    """Benchmarks import `mixnerf_eqx` as users do: no private module (`mixnerf_eqx._name`)."""
+    private = []
+    for path in sorted((REPO / "benchmarks").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            private += [f"{path.name}: {name}" for name in names if name.startswith("mixnerf_eqx._")]
+    assert not private, private
