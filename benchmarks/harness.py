@@ -321,7 +321,7 @@ class TrainingRun:
         self.config = config
         self.dataset = dataset
         self.state = mx.init_train_state(config, dataset)
-        self.data = mx.training_rays(dataset)
+        self.data = mx.training_rays(dataset, config.loss)
         self._step_fn = mx.make_train_step(config)
         self._draw = eqx.filter_jit(mx.draw_batch)
         self._compiled = None

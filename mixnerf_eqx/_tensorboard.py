@@ -4,14 +4,19 @@
 of a step's entry under `train/`, every metric of a periodic evaluation under `val/`) and adds
 the evaluation's images (colour, depth, error and, for MixNeRF, the predictive spread of one
 validation view). `tensorboard --logdir RUN_DIR/tensorboard` shows one run; a sweep's root
-shows one run per scene and seed. A resumed run appends a new event file to the same folder.
+shows one run per scene and seed. A resumed run appends a new event file to the same folder
+and purges what the old ones hold past its checkpoint, as the JSONL drops those entries; a run
+that switches TensorBoard on when it resumes mirrors the log from there on.
 """
 
+import importlib.util
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from ._config import ConfigError
 
 TENSORBOARD_DIR = "tensorboard"
 
@@ -19,16 +24,14 @@ TENSORBOARD_DIR = "tensorboard"
 class TensorBoardLog:
     """Writes scalars and images to `run_dir/tensorboard/` with tensorboardX."""
 
-    def __init__(self, run_dir: Path):
-        try:
-            from tensorboardX import SummaryWriter
-        except ImportError as error:
-            raise ImportError(
-                'train.log_to has "tensorboard", but tensorboardX is not installed: '
-                "pip install 'mixnerf_eqx[tensorboard]'"
-            ) from error
+    def __init__(self, run_dir: Path, start: int = 0):
+        check_tensorboard()
+        from tensorboardX import SummaryWriter
+
         self.folder = Path(run_dir) / TENSORBOARD_DIR
-        self.writer = SummaryWriter(logdir=str(self.folder), flush_secs=10)
+        # Events past the step resumed from belong to steps the run redoes.
+        purge = {"purge_step": start + 1} if start > 0 else {}
+        self.writer = SummaryWriter(logdir=str(self.folder), flush_secs=10, **purge)
 
     def step(self, entry: dict[str, Any]) -> None:
         """One entry of the loss history: each number but the step, as `train/<name>`."""
@@ -53,6 +56,15 @@ class TensorBoardLog:
 
     def close(self) -> None:
         self.writer.close()
+
+
+def check_tensorboard() -> None:
+    """Raises `ConfigError` (before a run starts) where tensorboardX is not installed."""
+    if importlib.util.find_spec("tensorboardX") is None:
+        raise ConfigError(
+            'train.log_to has "tensorboard", but tensorboardX is not installed: '
+            "pip install 'mixnerf_eqx[tensorboard]'"
+        )
 
 
 def _is_number(value: Any) -> bool:

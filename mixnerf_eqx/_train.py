@@ -44,7 +44,7 @@ from ._run import (
     write_view_renders,
 )
 from ._sharding import DataParallel, data_parallel_mesh
-from ._tensorboard import TensorBoardLog
+from ._tensorboard import TensorBoardLog, check_tensorboard
 from ._train_state import (
     StepMetrics,
     TrainState,
@@ -95,7 +95,7 @@ class _RunLog:
 
     def __init__(self, run_dir: Path, start: int, total: int, progress: bool, tensorboard: bool = False):
         self.path = run_dir / "train_log.jsonl"
-        self.tensorboard = TensorBoardLog(run_dir) if tensorboard else None
+        self.tensorboard = TensorBoardLog(run_dir, start) if tensorboard else None
         # Entries past the checkpoint belong to a run that ended without saving them (a crash
         # or a kill): the resumed run redoes those steps, so the log keeps one entry per step.
         self.evaluated = _truncate_log(self.path, start)
@@ -295,7 +295,8 @@ def _periodic_evaluation(
         on_view=keep_first,
     ).means
     if with_images and state.model.field.has_mixture_heads:
-        maps = predict_views(state.model, dataset.val.select(ids[:1]), dataset.near, dataset.far, chunk)
+        view = dataset.val.select(ids[:1])
+        maps = predict_views(state.model, view, dataset.near, dataset.far, config.train.render_chunk)
         images["colour_spread"] = _grey(maps["colour_std"][0].mean(axis=-1) / 0.5)
     return means, images
 
@@ -345,6 +346,8 @@ def fit(
     """
     for message in setting_warnings(config):
         warnings.warn(message, SettingWarning, stacklevel=2)
+    if "tensorboard" in config.train.log_to:
+        check_tensorboard()  # before anything is loaded, built or written
     run_dir = Path(config.train.run_dir)
     created = _prepare_run_dir(run_dir)
     # One writer per run folder: a second `fit` on it fails here, before touching it (and never

@@ -5,7 +5,8 @@ a time in chunks of rays (memory stays bounded whatever the resolution), writes 
 mean metrics to `RUN_DIR/eval/metrics.json` with colour and depth PNGs beside it, and prints a
 table. LPIPS needs the optional `lpips` extra; without it LPIPS is reported as unavailable.
 With `--uncertainty` it also writes the predictive distribution's spread beside the error maps,
-the arrays in `uncertainty.npz`, and the calibration measures (`docs/predictive.md`).
+the arrays in `uncertainty.npz`, and the calibration measures (`docs/predictive.md`). Last, it
+draws the run's training curves from its log into `RUN_DIR/curves.png` (with matplotlib).
 """
 
 import argparse
@@ -213,10 +214,14 @@ def run(args: argparse.Namespace) -> dict:
         result["uncertainty"] = _uncertainty(
             restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
         )
-    curves = plot_curves(run_dir)
-    result["curves"] = None if curves is None else str(curves)
     (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
     _print_summary(result, grid, choice, out, not args.no_renders)
+    # After the metrics are safe: the run's training curves, beside its log.
+    curves = plot_curves(run_dir)
+    if curves is not None:
+        result["curves"] = str(curves)
+        (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
+        print(f"training curves: {curves}")
     return result
 
 

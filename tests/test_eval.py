@@ -218,3 +218,45 @@ def test_curves_need_a_log_and_plot_every_non_zero_term(trained, tmp_path, capsy
     steps, evaluations = read_log(trained.run_dir / "train_log.jsonl")
     assert steps and all("psnr" in entry for entry in steps)
     assert plot_curves(trained.run_dir, tmp_path / "c.png") == tmp_path / "c.png"
+
+
+def test_curves_survive_a_skipped_step_and_a_line_cut_short(tmp_path):
+    """A skipped step logs `null` for its loss terms and a kill can leave half a line: the
+    figure is still drawn, with gaps."""
+    from mixnerf_eqx._curves import plot_curves, read_log
+
+    entries = [
+        {
+            "step": 10,
+            "loss": 1.0,
+            "mse_fine": 0.1,
+            "nll_colour": -2.0,
+            "psnr": 10.0,
+            "lr": 1e-3,
+            "lambda_colour": 1.0,
+        },
+        {
+            "step": 20,
+            "loss": None,
+            "mse_fine": None,
+            "nll_colour": None,
+            "psnr": None,
+            "lr": 1e-3,
+            "lambda_colour": 1.0,
+        },
+        {"step": 20, "eval": {"psnr": 12.0, "ssim": None}, "split": "val"},
+        {
+            "step": 30,
+            "loss": 0.5,
+            "mse_fine": 0.05,
+            "nll_colour": -3.0,
+            "psnr": 13.0,
+            "lr": 5e-4,
+            "lambda_colour": 0.1,
+        },
+    ]
+    text = "".join(json.dumps(entry) + "\n" for entry in entries) + '{"step": 40, "loss": 0.'
+    (tmp_path / "train_log.jsonl").write_text(text)
+    steps, evaluations = read_log(tmp_path / "train_log.jsonl")
+    assert [entry["step"] for entry in steps] == [10, 20, 30] and len(evaluations) == 1
+    assert plot_curves(tmp_path) == tmp_path / "curves.png"

@@ -6,6 +6,7 @@ tensorboardX's `Event` protocol buffer), not with the writer's code.
 
 import dataclasses
 import json
+import shutil
 import struct
 
 import numpy as np
@@ -19,9 +20,10 @@ from tensorboardX.proto import event_pb2  # noqa: E402
 
 def read_events(folder):
     """Every `(tag, step, value)` scalar and `(tag, step, height, width)` image in the event
-    files of `folder`."""
+    files of `folder`, read as TensorBoard reads them: a session that starts at step `s`
+    (a resumed run's `purge_step`) discards what came before it from step `s` on."""
     scalars, images = [], []
-    for path in sorted(folder.glob("events.out.tfevents.*")):
+    for path in sorted(folder.glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime_ns):
         data = path.read_bytes()
         offset = 0
         while offset < len(data):
@@ -29,12 +31,31 @@ def read_events(folder):
             record = data[offset + 12 : offset + 12 + length]
             offset += 12 + length + 4  # length, its CRC, the record, its CRC
             event = event_pb2.Event.FromString(record)
+            if event.HasField("session_log") and event.session_log.status == event.session_log.START:
+                scalars = [item for item in scalars if item[1] < event.step]
+                images = [item for item in images if item[1] < event.step]
             for value in event.summary.value:
                 if value.HasField("image"):
                     images.append((value.tag, event.step, value.image.height, value.image.width))
                 else:
                     scalars.append((value.tag, event.step, value.simple_value))
     return scalars, images
+
+
+def _expected_scalars(run_dir):
+    """The scalars of `run_dir`'s JSONL, as the event files should hold them."""
+    expected = {}
+    for line in (run_dir / "train_log.jsonl").read_text().splitlines():
+        entry = json.loads(line)
+        if "eval" in entry:
+            for name, value in entry["eval"].items():
+                if value is not None:
+                    expected[f"val/{name}", entry["step"]] = value
+        else:
+            for name, value in entry.items():
+                if name != "step" and isinstance(value, (int, float)) and np.isfinite(value):
+                    expected[f"train/{name}", entry["step"]] = value
+    return expected
 
 
 @pytest.fixture(scope="module")
@@ -56,25 +77,63 @@ def logged_run(tmp_path_factory):
 
 
 def test_the_event_files_hold_every_logged_scalar(logged_run):
-    entries = [json.loads(line) for line in (logged_run / "train_log.jsonl").read_text().splitlines()]
     scalars, _ = read_events(logged_run / "tensorboard")
     got = {(tag, step): value for tag, step, value in scalars}
-    expected = {}
-    for entry in entries:
-        if "eval" in entry:
-            for name, value in entry["eval"].items():
-                if value is not None:
-                    expected[f"val/{name}", entry["step"]] = value
-        else:
-            for name, value in entry.items():
-                if name != "step" and isinstance(value, (int, float)) and np.isfinite(value):
-                    expected[f"train/{name}", entry["step"]] = value
+    assert len(got) == len(scalars)  # one value per tag and step
+    expected = _expected_scalars(logged_run)
     assert {"train/loss", "train/psnr", "train/lr", "train/nll_colour", "val/psnr"} <= {
         t for t, _ in expected
     }
     assert set(got) == set(expected)
     for key, value in expected.items():
         assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-30), key
+
+
+def test_a_resumed_run_purges_the_events_past_its_checkpoint(tmp_path):
+    """A run killed after its last checkpoint redoes the steps after it: the JSONL drops their
+    entries and the event files, read as TensorBoard reads them, hold each step once."""
+    from helpers import TINY_OVERRIDES
+
+    run_dir = tmp_path / "run"
+    overrides = [
+        *TINY_OVERRIDES,
+        'train.log_to=["jsonl", "tensorboard"]',
+        "train.max_steps=6",
+        "train.checkpoint_every=2",
+        f'train.run_dir="{run_dir}"',
+    ]
+    config = mx.load_config("builtin", overrides)
+    mx.fit(config, progress=False, write_renders=False, log_every=1)
+    # The kill: the newest checkpoint (step 6) never made it to disk.
+    shutil.rmtree(run_dir / "checkpoints" / "step_00000006")
+    mx.fit(config, progress=False, write_renders=False, log_every=1)
+    scalars, _ = read_events(run_dir / "tensorboard")
+    assert len(list((run_dir / "tensorboard").glob("events.out.tfevents.*"))) == 2
+    got = {(tag, step): value for tag, step, value in scalars}
+    assert len(got) == len(scalars)
+    expected = _expected_scalars(run_dir)
+    assert set(got) == set(expected)
+    assert {step for tag, step in got if tag == "train/loss"} == set(range(1, 7))
+    for key, value in expected.items():
+        assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-30), key
+
+
+def test_a_missing_tensorboardx_stops_the_run_before_it_starts(tmp_path, monkeypatch):
+    import importlib.util
+
+    from helpers import TINY_OVERRIDES
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name: None if name == "tensorboardX" else real(name)
+    )
+    config = mx.load_config(
+        "builtin",
+        [*TINY_OVERRIDES, 'train.log_to=["jsonl", "tensorboard"]', f'train.run_dir="{tmp_path / "r"}"'],
+    )
+    with pytest.raises(mx.ConfigError, match=r"pip install 'mixnerf_eqx\[tensorboard\]'"):
+        mx.fit(config, progress=False)
+    assert not (tmp_path / "r").exists()
 
 
 def test_each_evaluation_writes_its_images(logged_run):
