@@ -44,3 +44,14 @@ def run_command(
             print(f"\ninterrupted: {interrupted}", file=sys.stderr)
         return 130
     return 0
+
+
+def add_skipping_argument(parser: argparse.ArgumentParser) -> None:
+    """`--skipping auto|on|off`, as the commands that render a run take it."""
+    parser.add_argument(
+        "--skipping",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="skip empty space and finished rays with an occupancy grid built from the checkpoint "
+        "(auto: if the run's occupancy.enabled)",
+    )

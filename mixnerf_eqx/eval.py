@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from . import _json as strict_json
-from ._cli import run_command
+from ._cli import add_skipping_argument, run_command
 from ._compilation_cache import add_compilation_cache_argument
 from ._config import ConfigError
 from ._curves import plot_curves
@@ -59,13 +59,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=0,
         help="evaluate this many of the split's views, evenly spaced (0: all)",
     )
-    parser.add_argument(
-        "--skipping",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="skip empty space and finished rays with an occupancy grid built from the checkpoint "
-        "(auto: if the run's occupancy.enabled)",
-    )
+    add_skipping_argument(parser)
     parser.add_argument(
         "--out",
         type=Path,

@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from . import _json as strict_json
-from ._cli import run_command
+from ._cli import add_skipping_argument, run_command
 from ._compilation_cache import add_compilation_cache_argument
 from ._config import ConfigError
 from ._progress import Progress
@@ -52,13 +52,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
     )
     parser.add_argument("--chunk", type=int, default=None, help="rays rendered at once (default: the run's)")
-    parser.add_argument(
-        "--skipping",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="skip empty space and finished rays with an occupancy grid built from the checkpoint "
-        "(auto: if the run's occupancy.enabled)",
-    )
+    add_skipping_argument(parser)
     add_typecheck_argument(parser)
     add_compilation_cache_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
