@@ -124,7 +124,7 @@ def map_ray_chunks(
 def join_chunks(parts: Sequence[np.ndarray], count: int, axis: int = 0) -> np.ndarray:
     """The chunks' arrays of `map_ray_chunks` joined along the rays' `axis`, padding dropped."""
     joined = np.concatenate([np.asarray(part) for part in parts], axis=axis)
-    return np.take(joined, np.arange(count), axis=axis)
+    return joined[(slice(None),) * axis + (slice(0, count),)]
 
 
 def render_rays(

@@ -152,8 +152,9 @@ class LossWeights:
 
 
 def needs_patches(loss: LossConfig) -> bool:
-    """Whether `loss` weights a term of the unseen-view patches (which are then drawn)."""
-    return LossWeights.from_config(loss, "mipnerf").needs_patches
+    """Whether `loss` weights a term of the unseen-view patches (which are then drawn), for
+    either method (MixNeRF's terms are a superset of the baseline's)."""
+    return LossWeights.from_config(loss, "mixnerf").needs_patches
 
 
 @dataclasses.dataclass(frozen=True)

@@ -58,79 +58,62 @@ def _expected_scalars(run_dir):
     return expected
 
 
-@pytest.fixture(scope="module")
-def logged_run(tmp_path_factory):
+def _logged_config(run_dir, *overrides):
+    """The tiny config, six steps, logging to TensorBoard too, in `run_dir`."""
     from helpers import TINY_OVERRIDES
 
+    base = [*TINY_OVERRIDES, 'train.log_to=["jsonl", "tensorboard"]', "train.max_steps=6"]
+    return mx.load_config("builtin", [*base, *overrides, f'train.run_dir="{run_dir}"'])
+
+
+def _assert_the_events_mirror_the_log(run_dir):
+    """The event files of `run_dir` hold each scalar of its JSONL once, at its step, and nothing
+    else; returns them."""
+    scalars, _ = read_events(run_dir / "tensorboard")
+    got = {(tag, step): value for tag, step, value in scalars}
+    assert len(got) == len(scalars)  # one value per tag and step
+    expected = _expected_scalars(run_dir)
+    assert set(got) == set(expected)
+    for key, value in expected.items():
+        assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-30), key
+    return got
+
+
+@pytest.fixture(scope="module")
+def logged_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("tb") / "run"
-    overrides = [
-        *TINY_OVERRIDES,
-        'train.log_to=["jsonl", "tensorboard"]',
-        "train.max_steps=6",
-        "train.eval_every=3",
-        "train.num_eval_views=1",
-        f'train.run_dir="{run_dir}"',
-    ]
-    config = mx.load_config("builtin", overrides)
+    config = _logged_config(run_dir, "train.eval_every=3", "train.num_eval_views=1")
     mx.fit(config, progress=False, write_renders=False, log_every=2)
     return run_dir
 
 
 def test_the_event_files_hold_every_logged_scalar(logged_run):
-    scalars, _ = read_events(logged_run / "tensorboard")
-    got = {(tag, step): value for tag, step, value in scalars}
-    assert len(got) == len(scalars)  # one value per tag and step
-    expected = _expected_scalars(logged_run)
-    assert {"train/loss", "train/psnr", "train/lr", "train/nll_colour", "val/psnr"} <= {
-        t for t, _ in expected
-    }
-    assert set(got) == set(expected)
-    for key, value in expected.items():
-        assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-30), key
+    got = _assert_the_events_mirror_the_log(logged_run)
+    assert {"train/loss", "train/psnr", "train/lr", "train/nll_colour", "val/psnr"} <= {t for t, _ in got}
 
 
 def test_a_resumed_run_purges_the_events_past_its_checkpoint(tmp_path):
     """A run killed after its last checkpoint redoes the steps after it: the JSONL drops their
     entries and the event files, read as TensorBoard reads them, hold each step once."""
-    from helpers import TINY_OVERRIDES
-
     run_dir = tmp_path / "run"
-    overrides = [
-        *TINY_OVERRIDES,
-        'train.log_to=["jsonl", "tensorboard"]',
-        "train.max_steps=6",
-        "train.checkpoint_every=2",
-        f'train.run_dir="{run_dir}"',
-    ]
-    config = mx.load_config("builtin", overrides)
+    config = _logged_config(run_dir, "train.checkpoint_every=2")
     mx.fit(config, progress=False, write_renders=False, log_every=1)
     # The kill: the newest checkpoint (step 6) never made it to disk.
     shutil.rmtree(run_dir / "checkpoints" / "step_00000006")
     mx.fit(config, progress=False, write_renders=False, log_every=1)
-    scalars, _ = read_events(run_dir / "tensorboard")
     assert len(list((run_dir / "tensorboard").glob("events.out.tfevents.*"))) == 2
-    got = {(tag, step): value for tag, step, value in scalars}
-    assert len(got) == len(scalars)
-    expected = _expected_scalars(run_dir)
-    assert set(got) == set(expected)
+    got = _assert_the_events_mirror_the_log(run_dir)
     assert {step for tag, step in got if tag == "train/loss"} == set(range(1, 7))
-    for key, value in expected.items():
-        assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-30), key
 
 
 def test_a_missing_tensorboardx_stops_the_run_before_it_starts(tmp_path, monkeypatch):
     import importlib.util
 
-    from helpers import TINY_OVERRIDES
-
     real = importlib.util.find_spec
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda name: None if name == "tensorboardX" else real(name)
     )
-    config = mx.load_config(
-        "builtin",
-        [*TINY_OVERRIDES, 'train.log_to=["jsonl", "tensorboard"]', f'train.run_dir="{tmp_path / "r"}"'],
-    )
+    config = _logged_config(tmp_path / "r")
     with pytest.raises(mx.ConfigError, match=r"pip install 'mixnerf_eqx\[tensorboard\]'"):
         mx.fit(config, progress=False)
     assert not (tmp_path / "r").exists()
