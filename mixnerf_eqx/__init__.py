@@ -6,8 +6,12 @@ annotated function and Module checks the shapes and dtypes of its arguments whil
 `JAXTYPING_DISABLE=1` turn the checks off: see `mixnerf_eqx._typecheck`.
 """
 
+from ._allocator import preload_for_commands as _preload_for_commands
 from ._interrupt import redeliver_dropped_interrupts as _redeliver_dropped_interrupts
 
+# Before anything heavy is imported: `python -m mixnerf_eqx.<command>` starts itself again
+# with mimalloc preloaded where it is installed (a faster CPU step; `mixnerf_eqx._allocator`).
+_preload_for_commands()
 # Before JAX is imported: a Ctrl-C that lands in its garbage-collection callback is not lost.
 _redeliver_dropped_interrupts()
 
@@ -16,6 +20,7 @@ import jaxtyping as _jaxtyping  # noqa: E402
 with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from . import data as data
     from . import metrics as metrics
+    from ._allocator import allocator_library as allocator_library
     from ._calibrate import ThresholdChoice as ThresholdChoice
     from ._calibrate import calibrate_threshold as calibrate_threshold
     from ._calibrate import calibration_rays as calibration_rays

@@ -137,25 +137,34 @@ def _plane_product_fwd(planes, indices, weights):
 def _plane_product_bwd(residuals, cotangent):
     planes, indices, weights, features = residuals
     guard = indices.reshape(-1)[0]
-    features = _in_own_buffers(features, guard)
-    cotangent = _in_own_buffers(cotangent, guard)
-    first, second, third = features
-    # The cotangent of each plane's lookup: (3, *batch, features).
-    per_plane = jnp.stack([cotangent * second * third, cotangent * first * third, cotangent * first * second])
     res, width = planes.shape[1], planes.shape[-1]
-    # Each corner-0 row of the flattened planes as (row, column) of the planes stacked to
-    # (3 * resolution, resolution): a window never crosses into the next plane.
-    starts = jnp.stack(jnp.divmod(indices[:, 0], res), axis=-1).reshape(-1, 2)
-    corner_weights = jnp.moveaxis(weights, 1, -1).reshape(*per_plane.shape[:-1], 2, 2)
-    updates = (corner_weights[..., None] * per_plane[..., None, None, :]).reshape(-1, 2, 2, width)
+    # The corner weights point by point, (3, *batch, 2, 2): transposed here once, not inside
+    # the loops below, where a transpose or a stack stops XLA from vectorising them.
+    corner_weights = jnp.moveaxis(weights, 1, -1).reshape(3, *weights.shape[2:], 2, 2)
+    features, cotangent, corner_weights = _in_own_buffers((features, cotangent, corner_weights), guard)
+    first, second, third = features
+    # The cotangent of each plane's lookup.
+    per_plane = (cotangent * second * third, cotangent * first * third, cotangent * first * second)
     numbers = jax.lax.ScatterDimensionNumbers(
         update_window_dims=(1, 2, 3), inserted_window_dims=(), scatter_dims_to_operand_dims=(0, 1)
     )
-    stacked = jnp.zeros((3 * res, res, width), planes.dtype)
-    stacked = jax.lax.scatter_add(stacked, starts, updates, numbers, mode=jax.lax.GatherScatterMode.CLIP)
+    gradients = []
+    for plane in range(3):
+        # Each window's corner 0 as (row, column) of its plane.
+        starts = jnp.stack(jnp.divmod(indices[plane, 0] - plane * res * res, res), axis=-1).reshape(-1, 2)
+        updates = corner_weights[plane][..., None] * per_plane[plane][..., None, None, :]
+        gradients.append(
+            jax.lax.scatter_add(
+                jnp.zeros((res, res, width), planes.dtype),
+                starts,
+                updates.reshape(-1, 2, 2, width),
+                numbers,
+                mode=jax.lax.GatherScatterMode.CLIP,
+            )
+        )
     table = planes.reshape(-1, width)
-    weights_cotangent = jnp.sum(table[indices] * per_plane[:, None], axis=-1)
-    return stacked.reshape(planes.shape), None, weights_cotangent
+    weights_cotangent = jnp.sum(table[indices] * jnp.stack(per_plane)[:, None], axis=-1)
+    return jnp.stack(gradients), None, weights_cotangent
 
 
 plane_product.defvjp(_plane_product_fwd, _plane_product_bwd)

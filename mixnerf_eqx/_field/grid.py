@@ -84,26 +84,45 @@ class AbstractGridEncoding(eqx.Module):
         return jnp.zeros(())
 
 
+# Plane `k` of a tri-plane level is sampled at the coordinates (column axis, row axis)
+# `_PLANE_COLUMNS[k]`, `_PLANE_ROWS[k]`; corner `c` of its 2x2 window lies
+# `_WINDOW_COLUMNS[c]` columns and `_WINDOW_ROWS[c]` rows from the window's first texel.
+_PLANE_COLUMNS, _PLANE_ROWS = (1, 0, 0), (2, 2, 1)
+_WINDOW_COLUMNS, _WINDOW_ROWS = (0, 1, 0, 1), (0, 0, 1, 1)
+
+
 def _plane_corners(
     resolution: int, points: Float[Array, "*batch 3"]
 ) -> tuple[Int[Array, "3 4 *batch"], Float[Array, "3 4 *batch"]]:
     """The four texels around each point's projection onto each of a level's three planes, as
     rows of the planes flattened to `(3 * resolution^2, features)`, and their bilinear weights
     (corners aligned), plane by plane. Plane `k` is sampled at the two coordinates other than
-    `k`, the first along its columns."""
+    `k`, the first along its columns.
+
+    Written as broadcasts over a (plane, corner) grid rather than stacks of per-plane arrays:
+    on the CPU, XLA emits a stack as a loop that selects its source element by element (about
+    6 ns an element here, against well under 1 ns for the broadcast form).
+    """
     res = resolution
     scaled = (jnp.clip(points, -1.0, 1.0) + 1.0) * 0.5 * (res - 1)
     low = jnp.clip(jnp.floor(scaled), 0, res - 2).astype(jnp.int32)
     frac = scaled - low
-    # (column axis, row axis) of each plane.
-    axes = ((1, 2), (0, 2), (0, 1))
-    indices, weights = [], []
-    for plane, (u, v) in enumerate(axes):
-        first = (plane * res + low[..., v]) * res + low[..., u]
-        indices.append(jnp.stack([first, first + 1, first + res, first + res + 1]))
-        fu, fv = frac[..., u], frac[..., v]
-        weights.append(jnp.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv]))
-    return jnp.stack(indices), jnp.stack(weights)
+    batch = (1,) * (points.ndim - 1)
+
+    def per_plane(values, axes):
+        # (3, 1, *batch): the coordinate each plane reads along `axes`.
+        return jnp.moveaxis(values[..., axes], -1, 0)[:, None]
+
+    def per_corner(offsets):
+        return jnp.asarray(offsets).reshape(1, 4, *batch)
+
+    low_u, low_v = per_plane(low, _PLANE_COLUMNS), per_plane(low, _PLANE_ROWS)
+    frac_u, frac_v = per_plane(frac, _PLANE_COLUMNS), per_plane(frac, _PLANE_ROWS)
+    du, dv = per_corner(_WINDOW_COLUMNS), per_corner(_WINDOW_ROWS)
+    plane = jnp.arange(3, dtype=jnp.int32).reshape(3, 1, *batch)
+    indices = (plane * res + low_v + dv) * res + low_u + du
+    weights = jnp.where(du == 1, frac_u, 1 - frac_u) * jnp.where(dv == 1, frac_v, 1 - frac_v)
+    return indices, weights
 
 
 def _plane_lookup(

@@ -1,0 +1,130 @@
+"""mimalloc for the command-line tools on Linux: a third off a CPU training step.
+
+XLA's CPU runtime allocates the buffers of every execution of a compiled function when it
+starts and frees them when it ends. glibc's malloc serves the large ones (and, on XLA's
+worker threads, smaller ones from per-thread arenas that it trims) with fresh pages from the
+kernel and gives them back on `free`, so each training step first touches tens of MB again:
+the quick start's step took about three million page faults a hundred steps, and its
+tri-plane gradient ran at half speed (`benchmarks/README.md`, "The CPU step"). mimalloc
+keeps freed pages for reuse; the step's values are unchanged, only where its buffers live.
+
+A process can only get another allocator when it starts (`LD_PRELOAD`), so the commands
+(`python -m mixnerf_eqx.train`, `eval`, `render`, `sweep`) start themselves again, once,
+with mimalloc preloaded, before anything heavier than this module is imported (about 20 ms).
+The library comes from the `cmeel-mimalloc` wheel, a dependency on Linux. The preload is
+taken out of the environment again once it is in effect, so that the programs a command
+starts (FFmpeg for videos, a sweep's runs, which preload it themselves) start as they would.
+
+`MIXNERF_ALLOCATOR` chooses: unset or `mimalloc` (the default), `system` (glibc's malloc, as
+without this module), or the path of another allocator's shared library (tcmalloc, for
+example). In a notebook or your own script, start Python with
+`LD_PRELOAD=$(python -c "import mixnerf_eqx as mx; print(mx.allocator_library())")`.
+"""
+
+import os
+import sys
+from pathlib import Path
+
+ALLOCATOR_ENV = "MIXNERF_ALLOCATOR"
+# The commands that start themselves again (`python -m mixnerf_eqx.<name>`).
+COMMANDS = ("train", "eval", "render", "sweep")
+# Set in the environment of the process started again: the `LD_PRELOAD` to restore once the
+# allocator is in effect, and a mark that stops a second start if the preload did not work.
+_ORIGINAL_PRELOAD = "MIXNERF_ORIGINAL_LD_PRELOAD"
+_TRIED = "MIXNERF_ALLOCATOR_TRIED"
+_SYSTEM = ("system", "off", "0", "none", "")
+
+
+def allocator_library() -> Path | None:
+    """The shared library `MIXNERF_ALLOCATOR` chooses: mimalloc from the `cmeel-mimalloc`
+    wheel by default, `None` for `system` or where there is none (not Linux, not
+    installed). A path that does not exist is an error."""
+    choice = os.environ.get(ALLOCATOR_ENV, "mimalloc").strip()
+    if choice.lower() in _SYSTEM:
+        return None
+    if choice.lower() != "mimalloc":
+        path = Path(choice).expanduser()
+        if not path.is_file():
+            raise FileNotFoundError(f"{ALLOCATOR_ENV}={choice!r} is not a file (give a shared library, or 'system')")
+        return path.resolve()
+    if not sys.platform.startswith("linux"):
+        return None
+    from importlib import metadata
+
+    try:
+        distribution = metadata.distribution("cmeel-mimalloc")
+    except metadata.PackageNotFoundError:
+        return None
+    for file in distribution.files or ():
+        if file.name.startswith("libmimalloc.so"):
+            path = Path(str(distribution.locate_file(file)))
+            if path.is_file():
+                return path.resolve()
+    return None
+
+
+def _is_loaded(library: Path) -> bool:
+    """Whether `library` is mapped into this process (Linux: `/proc/self/maps`)."""
+    try:
+        maps = Path("/proc/self/maps").read_text()
+    except OSError:
+        return False
+    return str(library) in maps or library.name in maps
+
+
+def _started_as_command(argv: list[str]) -> bool:
+    """Whether this interpreter was started as `python [options] -m mixnerf_eqx.<command>`
+    (`argv` as `sys.orig_argv`: the interpreter's own options, then `-m`, a script or `-c`)."""
+    commands = {f"mixnerf_eqx.{name}" for name in COMMANDS}
+    index = 1
+    while index < len(argv):
+        arg = argv[index]
+        if arg == "-m":
+            return index + 1 < len(argv) and argv[index + 1] in commands
+        if arg.startswith("-m"):
+            return arg[2:] in commands
+        if arg in ("-W", "-X", "--check-hash-based-pycs"):
+            index += 2
+        elif arg.startswith("-") and arg != "-" and not arg.startswith("-c"):
+            index += 1
+        else:
+            return False  # a script, standard input or `-c`
+    return False
+
+
+def preload_for_commands() -> None:
+    """Starts a command again with the allocator preloaded (see the module's docstring);
+    anything else, and a command already running with it, goes on unchanged."""
+    argv = list(getattr(sys, "orig_argv", ()))
+    if not argv or not _started_as_command(argv):
+        return
+    try:
+        library = allocator_library()
+    except FileNotFoundError as error:
+        print(f"warning: {error}; going on with the system allocator", file=sys.stderr)
+        return
+    if library is None:
+        return
+    if _is_loaded(library) or os.environ.get(_TRIED):
+        # In effect (or it could not be preloaded): the programs this one starts get the
+        # environment the user gave.
+        original = os.environ.pop(_ORIGINAL_PRELOAD, None)
+        if original is not None:
+            # "=VALUE" where `LD_PRELOAD` was set (perhaps empty), "" where it was not.
+            if original.startswith("="):
+                os.environ["LD_PRELOAD"] = original[1:]
+            else:
+                os.environ.pop("LD_PRELOAD", None)
+        os.environ.pop(_TRIED, None)
+        return
+    env = dict(os.environ)
+    original = env.get("LD_PRELOAD", "")
+    env[_ORIGINAL_PRELOAD] = f"={original}" if "LD_PRELOAD" in env else ""
+    env[_TRIED] = "1"
+    env["LD_PRELOAD"] = f"{library}:{original}" if original else str(library)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        os.execve(sys.executable, [sys.executable, *argv[1:]], env)
+    except OSError as error:
+        print(f"warning: could not start again with {library} ({error}); going on without it", file=sys.stderr)
