@@ -119,13 +119,16 @@ def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = 
     A `TrainState` at step 0.
     """
     model_key, train_key = jax.random.split(init_key(config) if key is None else key)
-    model = build_model(
-        config,
-        key=model_key,
-        frustum=dataset.frustum,
-        white_background=dataset.white_background,
-        scene_box=scene_box(dataset),
-    )
+    box = scene_box(dataset)
+
+    def build(key: PRNGKey) -> MixNeRF:
+        return build_model(
+            config, key=key, frustum=dataset.frustum, white_background=dataset.white_background, scene_box=box
+        )
+
+    # One compiled program draws every initial parameter: run op by op, each initialiser of
+    # another shape compiled on its own (about 4 s of a CPU run's start, none of it cached).
+    model = eqx.filter_jit(build)(model_key)
     optim = config.optim
     horizon = optim.decay_steps or config.train.max_steps
     learning_rate = learning_rate_schedule(
