@@ -20,7 +20,9 @@ import jaxtyping as _jaxtyping  # noqa: E402
 with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from . import data as data
     from . import metrics as metrics
+    from ._allocator import allocator_in_use as allocator_in_use
     from ._allocator import allocator_library as allocator_library
+    from ._allocator import preload_allocator as preload_allocator
     from ._calibrate import ThresholdChoice as ThresholdChoice
     from ._calibrate import calibrate_threshold as calibrate_threshold
     from ._calibrate import calibration_rays as calibration_rays

@@ -18,7 +18,9 @@ starts (FFmpeg for videos, a sweep's runs, which preload it themselves) start as
 `MIXNERF_ALLOCATOR` chooses: unset or `mimalloc` (the default), `system` (glibc's malloc, as
 without this module), or the path of another allocator's shared library (tcmalloc, for
 example). In a notebook or your own script, start Python with
-`LD_PRELOAD=$(python -c "import mixnerf_eqx as mx; print(mx.allocator_library())")`.
+`LD_PRELOAD=$(python -c "import mixnerf_eqx as mx; print(mx.allocator_library())")`, or call
+`mx.preload_allocator()` first thing in a script (the benchmarks do: it starts the script
+again with the library preloaded). `mx.allocator_in_use()` says which one a process runs with.
 """
 
 import os
@@ -92,12 +94,21 @@ def _started_as_command(argv: list[str]) -> bool:
     return False
 
 
-def preload_for_commands() -> None:
-    """Starts a command again with the allocator preloaded (see the module's docstring);
-    anything else, and a command already running with it, goes on unchanged."""
-    argv = list(getattr(sys, "orig_argv", ()))
-    if not argv or not _started_as_command(argv):
-        return
+def allocator_in_use() -> str:
+    """The allocator this process runs with: the path of the preloaded library that
+    `allocator_library()` names, or `"system"`."""
+    try:
+        library = allocator_library()
+    except FileNotFoundError:
+        return "system"
+    return str(library) if library is not None and _is_loaded(library) else "system"
+
+
+def preload_allocator() -> None:
+    """Starts this process again, with the same command line, with `allocator_library()`
+    preloaded, unless it already runs with it (or there is none, or it could not be
+    preloaded). For scripts that time training (the benchmarks call it first); everything
+    the process did before the call is done again, so call it before any work."""
     try:
         library = allocator_library()
     except FileNotFoundError as error:
@@ -117,6 +128,9 @@ def preload_for_commands() -> None:
                 os.environ.pop("LD_PRELOAD", None)
         os.environ.pop(_TRIED, None)
         return
+    argv = list(getattr(sys, "orig_argv", ()))
+    if not argv:
+        return
     env = dict(os.environ)
     original = env.get("LD_PRELOAD", "")
     env[_ORIGINAL_PRELOAD] = f"={original}" if "LD_PRELOAD" in env else ""
@@ -128,3 +142,11 @@ def preload_for_commands() -> None:
         os.execve(sys.executable, [sys.executable, *argv[1:]], env)
     except OSError as error:
         print(f"warning: could not start again with {library} ({error}); going on without it", file=sys.stderr)
+
+
+def preload_for_commands() -> None:
+    """`preload_allocator()` for a process started as `python -m mixnerf_eqx.<command>`;
+    anything else goes on unchanged."""
+    argv = list(getattr(sys, "orig_argv", ()))
+    if argv and _started_as_command(argv):
+        preload_allocator()

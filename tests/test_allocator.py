@@ -140,3 +140,22 @@ def test_training_is_the_same_under_either_allocator(tmp_path):
         metrics = json.loads((run_dir / "metrics.json").read_text())
         outputs[choice] = ([{k: v for k, v in e.items() if k != "steps_per_s"} for e in log], metrics["test"])
     assert outputs["system"][0] and outputs["system"] == outputs["mimalloc"]
+
+
+@linux_only
+def test_a_script_can_start_itself_again_with_the_allocator(tmp_path):
+    if allocator_library() is None:
+        pytest.skip("cmeel-mimalloc is not installed")
+    script = tmp_path / "script.py"
+    script.write_text(
+        "import sys\n"
+        "import mixnerf_eqx as mx\n"
+        "mx.preload_allocator()\n"
+        "print(sys.argv[1:], mx.allocator_in_use())\n"
+    )
+    records = _run_probed(tmp_path, [str(script), "a", "b"], MIXNERF_ALLOCATOR=None, LD_PRELOAD=None)
+    assert len(records) == 1 and records[0]["mimalloc"]
+    assert records[0]["LD_PRELOAD"] is None and records[0]["marks"] == []
+    env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "MIXNERF_ALLOCATOR")}
+    shown = subprocess.run([sys.executable, str(script), "a", "b"], env=env, capture_output=True, text=True, check=True)
+    assert shown.stdout.startswith("['a', 'b'] ") and "libmimalloc" in shown.stdout
