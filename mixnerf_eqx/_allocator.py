@@ -4,8 +4,8 @@ XLA's CPU runtime allocates the buffers of every execution of a compiled functio
 starts and frees them when it ends. glibc's malloc serves the large ones (and, on XLA's
 worker threads, smaller ones from per-thread arenas that it trims) with fresh pages from the
 kernel and gives them back on `free`, so each training step first touches tens of MB again:
-the quick start's step took about three million page faults a hundred steps, and its
-tri-plane gradient ran at half speed (`benchmarks/README.md`, "The CPU step"). mimalloc
+130 steps of the quick start took three million page faults, and its tri-plane gradient
+ran at less than half the speed (`benchmarks/README.md`, "The CPU step"). mimalloc
 keeps freed pages for reuse; the step's values are unchanged, only where its buffers live.
 
 A process can only get another allocator when it starts (`LD_PRELOAD`), so the commands
@@ -13,7 +13,9 @@ A process can only get another allocator when it starts (`LD_PRELOAD`), so the c
 with mimalloc preloaded, before anything heavier than this module is imported (about 20 ms).
 The library comes from the `cmeel-mimalloc` wheel, a dependency on Linux. The preload is
 taken out of the environment again once it is in effect, so that the programs a command
-starts (FFmpeg for videos, a sweep's runs, which preload it themselves) start as they would.
+starts (FFmpeg for videos, a sweep's submitit jobs) start with the environment the user gave:
+to give submitit jobs mimalloc too, set `LD_PRELOAD` to `allocator_library()` yourself.
+Only Linux has `LD_PRELOAD` as used here; elsewhere nothing is done.
 
 `MIXNERF_ALLOCATOR` chooses: unset or `mimalloc` (the default), `system` (glibc's malloc, as
 without this module), or the path of another allocator's shared library (tcmalloc, for
@@ -114,7 +116,7 @@ def preload_allocator() -> None:
     except FileNotFoundError as error:
         print(f"warning: {error}; going on with the system allocator", file=sys.stderr)
         return
-    if library is None:
+    if library is None or not sys.platform.startswith("linux"):
         return
     if _is_loaded(library) or os.environ.get(_TRIED):
         # In effect (or it could not be preloaded): the programs this one starts get the

@@ -108,3 +108,39 @@ def test_verdict_table_counts_collapsed_runs():
     assert "0 of 3 / 1 of 3" in lines[-1]
     assert fidelity.collapsed({0: 19.0, 1: 16.8, 2: 18.9}) == [1]  # median 18.9
     assert fidelity.collapsed({0: 19.0, 1: 17.1, 2: 18.9}) == []
+
+
+def test_a_remedy_is_chosen_on_validation_views_of_every_scene():
+    runs = []
+    for seed, noise in enumerate((0.0, 0.1, -0.1)):
+        for scene in fidelity.PROTOCOL:
+            # The ablation is 1 dB ahead of MixNeRF on validation views and level with the
+            # baseline on test views; the test views would have chosen otherwise on fern.
+            val_gain = 1.0 + noise
+            test_gain = -1.0 + noise if scene == "fern" else 0.5 + noise
+            runs += [
+                _run(scene, "mixnerf", seed, [18.0], [25.0], val_curve=[17.0]),
+                _run(scene, "mipnerf", seed, [18.0 + test_gain], [25.0], val_curve=[17.0]),
+                _run(scene, "mixnerf-no-ramp", seed, [18.0 + test_gain], [25.0], val_curve=[17.0 + val_gain]),
+            ]
+    table, summary = fidelity.summarise(runs)
+    found = summary["ablations"]["mixnerf-no-ramp"]
+    assert found["ahead_on_validation_everywhere"]
+    fern = found["scenes"]["fern"]
+    assert fern["val_vs_mixnerf"]["diffs"] == pytest.approx([1.0, 1.1, 0.9])
+    assert fern["val_vs_mixnerf"]["verdict"] == "ahead"
+    assert fern["test_vs_mixnerf"]["verdict"] == "behind"
+    assert fern["test_vs_baseline"]["diffs"] == pytest.approx([0.0, 0.0, 0.0])
+    assert "| mixnerf-no-ramp | fern | 3 | +1.00 ± 0.06: ahead | -1.00 ± 0.06: behind |" in table
+    # Missing on one scene, or level on one: not adopted.
+    without_lego = [r for r in runs if not (r["scene"] == "lego" and r["method"] == "mixnerf-no-ramp")]
+    assert not fidelity.summarise(without_lego)[1]["ablations"]["mixnerf-no-ramp"]["ahead_on_validation_everywhere"]
+    level = [
+        {**r, "final": {**r["final"], "val": {"psnr": 17.0 + (0.3 if r["seed"] == 0 else -0.3)}}}
+        if r["scene"] == "builtin" and r["method"] == "mixnerf-no-ramp"
+        else r
+        for r in runs
+    ]
+    verdict = fidelity.summarise(level)[1]["ablations"]["mixnerf-no-ramp"]
+    assert verdict["scenes"]["builtin"]["val_vs_mixnerf"]["verdict"] == "level"
+    assert not verdict["ahead_on_validation_everywhere"]
