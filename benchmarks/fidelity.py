@@ -401,6 +401,8 @@ def paired_verdict(
 
 def collapsed(values: dict[int, float]) -> list[int]:
     """The seeds whose held-out PSNR lies more than `COLLAPSE_DB` below the median of theirs."""
+    if not values:
+        return []
     median = float(np.median(list(values.values())))
     return [seed for seed, value in values.items() if value < median - COLLAPSE_DB]
 
@@ -480,7 +482,7 @@ def ablation_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any
             if not ends[ablation]:
                 continue
 
-            def psnr(method: str, split: str) -> dict[int, float]:
+            def psnr(method: str, split: str, ends=ends) -> dict[int, float]:
                 return {s: e[split]["psnr"] for s, e in ends[method].items() if split in e}
 
             row = {
@@ -496,7 +498,9 @@ def ablation_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any
                 f"| {len(row['collapsed'])} of {len(ends[ablation])} |"
             )
         choices = [row["val_vs_mixnerf"] for row in per_scene.values()]
-        wins = len(per_scene) == len(PROTOCOL) and all(c is not None and c["verdict"] == "ahead" for c in choices)
+        wins = len(per_scene) == len(PROTOCOL) and all(
+            c is not None and c["verdict"] == "ahead" for c in choices
+        )
         found[ablation] = {"scenes": per_scene, "ahead_on_validation_everywhere": wins}
     return (lines if ablations else []), found
 

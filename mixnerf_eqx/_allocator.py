@@ -49,7 +49,9 @@ def allocator_library() -> Path | None:
     if choice.lower() != "mimalloc":
         path = Path(choice).expanduser()
         if not path.is_file():
-            raise FileNotFoundError(f"{ALLOCATOR_ENV}={choice!r} is not a file (give a shared library, or 'system')")
+            raise FileNotFoundError(
+                f"{ALLOCATOR_ENV}={choice!r} is not a file (give a shared library, or 'system')"
+            )
         return path.resolve()
     if not sys.platform.startswith("linux"):
         return None
@@ -78,22 +80,43 @@ def _is_loaded(library: Path) -> bool:
 
 def _started_as_command(argv: list[str]) -> bool:
     """Whether this interpreter was started as `python [options] -m mixnerf_eqx.<command>`
-    (`argv` as `sys.orig_argv`: the interpreter's own options, then `-m`, a script or `-c`)."""
+    (`argv` as `sys.orig_argv`). Options are read as CPython reads them: short flags may be
+    grouped (`-Bm`), `-W` and `-X` take the rest of their group or the next argument, and
+    `-c`, `-m`, a script or `-` end the options."""
     commands = {f"mixnerf_eqx.{name}" for name in COMMANDS}
     index = 1
     while index < len(argv):
         arg = argv[index]
-        if arg == "-m":
-            return index + 1 < len(argv) and argv[index + 1] in commands
-        if arg.startswith("-m"):
-            return arg[2:] in commands
-        if arg in ("-W", "-X", "--check-hash-based-pycs"):
+        if arg == "--check-hash-based-pycs":
             index += 2
-        elif arg.startswith("-") and arg != "-" and not arg.startswith("-c"):
-            index += 1
-        else:
-            return False  # a script, standard input or `-c`
+            continue
+        if not arg.startswith("-") or arg == "-" or arg.startswith("--"):
+            return False  # a script, standard input, or a long option this does not know
+        group = arg[1:]
+        for position, flag in enumerate(group):
+            rest = group[position + 1 :]
+            if flag == "c":
+                return False
+            if flag == "m":
+                module = rest or (argv[index + 1] if index + 1 < len(argv) else "")
+                return module in commands
+            if flag in "WX":
+                index += 0 if rest else 1  # the argument is the rest of the group, or the next one
+                break
+        index += 1
     return False
+
+
+def _interactive() -> str | None:
+    """Why starting this process again would lose work, or `None`: standard input already
+    read (`python -`, `python < script.py`), an interactive session, a Jupyter kernel."""
+    if "ipykernel" in sys.modules:
+        return "a Jupyter kernel"
+    if sys.flags.interactive or hasattr(sys, "ps1"):
+        return "an interactive session"
+    if sys.argv and sys.argv[0] in ("", "-"):
+        return "a program read from standard input"
+    return None
 
 
 def allocator_in_use() -> str:
@@ -118,6 +141,8 @@ def preload_allocator() -> None:
         return
     if library is None or not sys.platform.startswith("linux"):
         return
+    if os.environ.get("LD_PRELOAD") and _ORIGINAL_PRELOAD not in os.environ:
+        return  # the user preloads libraries of their own (an allocator, a sanitiser): theirs win
     if _is_loaded(library) or os.environ.get(_TRIED):
         # In effect (or it could not be preloaded): the programs this one starts get the
         # environment the user gave.
@@ -130,25 +155,30 @@ def preload_allocator() -> None:
                 os.environ.pop("LD_PRELOAD", None)
         os.environ.pop(_TRIED, None)
         return
-    argv = list(getattr(sys, "orig_argv", ()))
-    if not argv:
+    lost = _interactive()
+    if lost is not None:
+        print(
+            f"warning: not starting {lost} again with {library.name}: start Python with LD_PRELOAD={library}",
+            file=sys.stderr,
+        )
         return
     env = dict(os.environ)
-    original = env.get("LD_PRELOAD", "")
-    env[_ORIGINAL_PRELOAD] = f"={original}" if "LD_PRELOAD" in env else ""
+    env[_ORIGINAL_PRELOAD] = "=" if "LD_PRELOAD" in env else ""
     env[_TRIED] = "1"
-    env["LD_PRELOAD"] = f"{library}:{original}" if original else str(library)
-    sys.stdout.flush()
-    sys.stderr.flush()
+    env["LD_PRELOAD"] = str(library)
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
     try:
-        os.execve(sys.executable, [sys.executable, *argv[1:]], env)
+        os.execve(sys.executable, [sys.executable, *sys.orig_argv[1:]], env)
     except OSError as error:
-        print(f"warning: could not start again with {library} ({error}); going on without it", file=sys.stderr)
+        print(
+            f"warning: could not start again with {library} ({error}); going on without it", file=sys.stderr
+        )
 
 
 def preload_for_commands() -> None:
     """`preload_allocator()` for a process started as `python -m mixnerf_eqx.<command>`;
     anything else goes on unchanged."""
-    argv = list(getattr(sys, "orig_argv", ()))
-    if argv and _started_as_command(argv):
+    if _started_as_command(sys.orig_argv):
         preload_allocator()

@@ -103,6 +103,12 @@ def init_key(config: Config) -> PRNGKey:
     return jax.random.key(config.train.seed)
 
 
+# One compiled program draws every initial parameter (the config, frustum and box are static,
+# so a process compiles it once per setting): run op by op, each initialiser of another shape
+# compiled on its own, about 4 s of a CPU run's start, none of it in the persistent cache.
+_build_model_compiled = eqx.filter_jit(build_model)
+
+
 def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = None) -> TrainState:
     """The state a run starts from.
 
@@ -119,16 +125,13 @@ def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = 
     A `TrainState` at step 0.
     """
     model_key, train_key = jax.random.split(init_key(config) if key is None else key)
-    box = scene_box(dataset)
-
-    def build(key: PRNGKey) -> MixNeRF:
-        return build_model(
-            config, key=key, frustum=dataset.frustum, white_background=dataset.white_background, scene_box=box
-        )
-
-    # One compiled program draws every initial parameter: run op by op, each initialiser of
-    # another shape compiled on its own (about 4 s of a CPU run's start, none of it cached).
-    model = eqx.filter_jit(build)(model_key)
+    model = _build_model_compiled(
+        config,
+        key=model_key,
+        frustum=dataset.frustum,
+        white_background=dataset.white_background,
+        scene_box=scene_box(dataset),
+    )
     optim = config.optim
     horizon = optim.decay_steps or config.train.max_steps
     learning_rate = learning_rate_schedule(

@@ -18,11 +18,15 @@ from helpers import TINY_OVERRIDES
 from mixnerf_eqx import _allocator
 from mixnerf_eqx._allocator import allocator_library
 
-linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="LD_PRELOAD and /proc are Linux's")
+linux_only = pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="LD_PRELOAD and /proc are Linux's"
+)
 
 PROBE = textwrap.dedent(
     """
     import atexit, json, os
+
+    MARKS = ("MIXNERF_ORIGINAL_LD_PRELOAD", "MIXNERF_ALLOCATOR_TRIED")
 
     def _record():
         with open(os.environ["PROBE_OUT"], "a") as out:
@@ -31,7 +35,7 @@ PROBE = textwrap.dedent(
                 "pid": os.getpid(),
                 "mimalloc": "libmimalloc" in maps,
                 "LD_PRELOAD": os.environ.get("LD_PRELOAD"),
-                "marks": sorted(k for k in os.environ if k.startswith("MIXNERF_") and k != "MIXNERF_ALLOCATOR"),
+                "marks": sorted(k for k in MARKS if k in os.environ),
             }) + "\\n")
 
     atexit.register(_record)
@@ -52,7 +56,16 @@ def _run_probed(tmp_path: Path, args: list[str], **env_changes: str | None) -> l
             env.pop(key, None)
         else:
             env[key] = value
-    subprocess.run([sys.executable, *args], env=env, cwd=tmp_path, check=True, capture_output=True, text=True)
+    finished = subprocess.run(
+        [sys.executable, *args],
+        env=env,
+        cwd=tmp_path,
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    _run_probed.stderr = finished.stderr
     return [json.loads(line) for line in out.read_text().splitlines()]
 
 
@@ -79,6 +92,12 @@ def test_the_library_is_chosen_by_the_environment(monkeypatch, tmp_path):
         (["python", "-u", "-X", "dev", "-W", "error", "-m", "mixnerf_eqx.sweep"], True),
         (["python", "-mmixnerf_eqx.eval", "runs/x"], True),
         (["python", "-m", "mixnerf_eqx.render"], True),
+        (["python", "-Im", "mixnerf_eqx.train"], True),
+        (["python", "-B", "-Xdev", "-Wdefault", "-m", "mixnerf_eqx.train"], True),
+        (["python", "-W", "error", "-Bm", "mixnerf_eqx.eval"], True),
+        (["python", "--check-hash-based-pycs", "never", "-m", "mixnerf_eqx.sweep"], True),
+        (["python", "-Bc", "import mixnerf_eqx", "-m", "mixnerf_eqx.train"], False),
+        (["python", "-X", "-m", "mixnerf_eqx.train"], False),
         (["python", "-m", "pytest", "-m", "mixnerf_eqx.train"], False),
         (["python", "-m", "mixnerf_eqx"], False),
         (["python", "-m"], False),
@@ -96,14 +115,32 @@ def test_only_the_commands_start_again(argv, expected):
 def test_a_command_runs_with_mimalloc_and_hands_on_the_environment_it_was_given(tmp_path):
     if allocator_library() is None:
         pytest.skip("cmeel-mimalloc is not installed")
-    records = _run_probed(tmp_path, ["-m", "mixnerf_eqx.train", "--help"], LD_PRELOAD=None, MIXNERF_ALLOCATOR=None)
+    records = _run_probed(
+        tmp_path, ["-m", "mixnerf_eqx.train", "--help"], LD_PRELOAD=None, MIXNERF_ALLOCATOR=None
+    )
     assert len(records) == 1, records  # the first process was replaced, not left running
     assert records[0]["mimalloc"]
     assert records[0]["LD_PRELOAD"] is None
     assert records[0]["marks"] == []
-    # The user's own preload is kept, after mimalloc, and given back to the programs it starts.
-    records = _run_probed(tmp_path, ["-m", "mixnerf_eqx.eval", "--help"], LD_PRELOAD="", MIXNERF_ALLOCATOR=None)
+    # An empty LD_PRELOAD is given back as it was.
+    records = _run_probed(
+        tmp_path, ["-m", "mixnerf_eqx.eval", "--help"], LD_PRELOAD="", MIXNERF_ALLOCATOR=None
+    )
     assert records[0]["mimalloc"] and records[0]["LD_PRELOAD"] == ""
+
+
+@linux_only
+def test_a_users_own_preload_wins(tmp_path):
+    import ctypes.util
+
+    libm = ctypes.util.find_library("m")
+    if libm is None:
+        pytest.skip("no libm to preload")
+    records = _run_probed(
+        tmp_path, ["-m", "mixnerf_eqx.train", "--help"], LD_PRELOAD=libm, MIXNERF_ALLOCATOR=None
+    )
+    assert len(records) == 1 and not records[0]["mimalloc"]
+    assert records[0]["LD_PRELOAD"] == libm and records[0]["marks"] == []
 
 
 @linux_only
@@ -119,7 +156,10 @@ def test_a_preload_that_fails_is_not_retried(tmp_path):
     # Not a shared library: the loader ignores it with a message, and the command goes on once.
     fake = tmp_path / "libfake.so"
     fake.write_bytes(b"not an ELF file")
-    records = _run_probed(tmp_path, ["-m", "mixnerf_eqx.train", "--help"], MIXNERF_ALLOCATOR=str(fake), LD_PRELOAD=None)
+    records = _run_probed(
+        tmp_path, ["-m", "mixnerf_eqx.train", "--help"], MIXNERF_ALLOCATOR=str(fake), LD_PRELOAD=None
+    )
+    assert "cannot be preloaded" in _run_probed.stderr  # it was started again, with the preload
     assert len(records) == 1
     assert records[0]["LD_PRELOAD"] is None and records[0]["marks"] == []
 
@@ -134,7 +174,9 @@ def test_training_is_the_same_under_either_allocator(tmp_path):
     for choice in ("system", "mimalloc"):
         run_dir = tmp_path / choice
         args = ["-m", "mixnerf_eqx.train", "--config", "builtin", "--no-progress", "--run-dir", str(run_dir)]
-        records = _run_probed(tmp_path, [*args, *TINY_OVERRIDES, "train.max_steps=10"], MIXNERF_ALLOCATOR=choice)
+        records = _run_probed(
+            tmp_path, [*args, *TINY_OVERRIDES, "train.max_steps=10"], MIXNERF_ALLOCATOR=choice
+        )
         assert records[0]["mimalloc"] is (choice == "mimalloc")
         log = [json.loads(line) for line in (run_dir / "train_log.jsonl").read_text().splitlines()]
         metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -157,5 +199,20 @@ def test_a_script_can_start_itself_again_with_the_allocator(tmp_path):
     assert len(records) == 1 and records[0]["mimalloc"]
     assert records[0]["LD_PRELOAD"] is None and records[0]["marks"] == []
     env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "MIXNERF_ALLOCATOR")}
-    shown = subprocess.run([sys.executable, str(script), "a", "b"], env=env, capture_output=True, text=True, check=True)
+    shown = subprocess.run(
+        [sys.executable, str(script), "a", "b"], env=env, capture_output=True, text=True, check=True
+    )
     assert shown.stdout.startswith("['a', 'b'] ") and "libmimalloc" in shown.stdout
+
+
+@linux_only
+def test_a_program_read_from_standard_input_is_not_started_again(tmp_path):
+    if allocator_library() is None:
+        pytest.skip("cmeel-mimalloc is not installed")
+    env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "MIXNERF_ALLOCATOR")}
+    program = "import mixnerf_eqx as mx\nmx.preload_allocator()\nprint('ran', mx.allocator_in_use())\n"
+    shown = subprocess.run(
+        [sys.executable, "-"], input=program, env=env, capture_output=True, text=True, check=True, timeout=300
+    )
+    assert shown.stdout == "ran system\n"
+    assert "standard input" in shown.stderr and "LD_PRELOAD=" in shown.stderr

@@ -277,3 +277,33 @@ def test_no_periodic_evaluation_without_validation_views(tiny_config, tiny_scene
         line for line in (result.run_dir / "train_log.jsonl").read_text().splitlines() if '"eval"' in line
     ]
     assert result.metrics["val"] is None and "test" in result.metrics
+
+
+@pytest.mark.parametrize("overrides", [(), ("model.field=grid", "grid.box_radius=1.3")])
+def test_initial_parameters_equal_those_drawn_op_by_op(tiny_config, tiny_scene, overrides):
+    """`init_train_state` draws the model in one compiled program: the same parameters, bit
+    for bit, as `build_model` run eagerly with the same key, and one compilation per setting."""
+    config = mx.load_config("builtin", [*_tiny_overrides(), *overrides]) if overrides else tiny_config
+    model_key, _ = jax.random.split(mx.init_key(config))
+    eager = mx.build_model(
+        config,
+        key=model_key,
+        frustum=tiny_scene.frustum,
+        white_background=tiny_scene.white_background,
+        scene_box=mx.scene_box(tiny_scene),
+    )
+    compiled = init_train_state(config, tiny_scene).model
+    want = jax.tree_util.tree_leaves(eqx.filter(eager, eqx.is_array))
+    got = jax.tree_util.tree_leaves(eqx.filter(compiled, eqx.is_array))
+    assert len(got) == len(want) > 0
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert eqx.tree_equal(
+        eqx.filter(compiled, eqx.is_array, inverse=True), eqx.filter(eager, eqx.is_array, inverse=True)
+    )
+
+
+def _tiny_overrides():
+    from helpers import TINY_OVERRIDES
+
+    return TINY_OVERRIDES

@@ -114,7 +114,7 @@ def _plane_corners(
         return jnp.moveaxis(values[..., axes], -1, 0)[:, None]
 
     def per_corner(offsets):
-        return jnp.asarray(offsets).reshape(1, 4, *batch)
+        return jnp.asarray(offsets, jnp.int32).reshape(1, 4, *batch)
 
     low_u, low_v = per_plane(low, _PLANE_COLUMNS), per_plane(low, _PLANE_ROWS)
     frac_u, frac_v = per_plane(frac, _PLANE_COLUMNS), per_plane(frac, _PLANE_ROWS)
