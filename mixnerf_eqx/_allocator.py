@@ -15,7 +15,13 @@ The library comes from the `cmeel-mimalloc` wheel, a dependency on Linux. The pr
 taken out of the environment again once it is in effect, so that the programs a command
 starts (FFmpeg for videos, a sweep's submitit jobs) start with the environment the user gave:
 to give submitit jobs mimalloc too, set `LD_PRELOAD` to `allocator_library()` yourself.
-Only Linux has `LD_PRELOAD` as used here; elsewhere nothing is done.
+Only Linux has `LD_PRELOAD` as used here; elsewhere nothing is done. A process that already
+preloads libraries of the user's (`LD_PRELOAD` not empty: an allocator, a sanitiser) keeps
+them alone, and one that cannot be started again without losing work (a program read from
+standard input, an interactive session, a Jupyter kernel) is left as it is, with a warning.
+
+The package's `__init__` calls `preload_for_commands()` before it imports JAX, as it installs
+the interrupt hook there: a command's first process then costs about 20 ms, not the imports.
 
 `MIXNERF_ALLOCATOR` chooses: unset or `mimalloc` (the default), `system` (glibc's malloc, as
 without this module), or the path of another allocator's shared library (tcmalloc, for

@@ -130,7 +130,10 @@ def test_a_ctrl_c_in_the_set_up_before_the_loop_stops_the_run(tiny_scene, tmp_pa
 
 
 DROPPED_INTERRUPT = """
-import gc, time
+import gc, signal, time
+# Ctrl-C handled as in a terminal: a test runner started in the background (`cmd &` in a
+# script) passes SIGINT on ignored, and then Python installs no handler of its own.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 import mixnerf_eqx  # installs the hook before JAX is imported
 from mixnerf_eqx._interrupt import deferred_interrupts, raise_if_interrupted
 
