@@ -38,8 +38,9 @@ from pathlib import Path
 ALLOCATOR_ENV = "MIXNERF_ALLOCATOR"
 # The commands that start themselves again (`python -m mixnerf_eqx.<name>`).
 COMMANDS = ("train", "eval", "render", "sweep")
-# Set in the environment of the process started again: the `LD_PRELOAD` to restore once the
-# allocator is in effect, and a mark that stops a second start if the preload did not work.
+# Set in the environment of the process started again: whether `LD_PRELOAD` was set (empty)
+# before, to restore once the allocator is in effect, and a mark that stops a second start if
+# the preload did not work.
 _ORIGINAL_PRELOAD = "MIXNERF_ORIGINAL_LD_PRELOAD"
 _TRIED = "MIXNERF_ALLOCATOR_TRIED"
 _SYSTEM = ("system", "off", "0", "none", "")
@@ -154,9 +155,10 @@ def preload_allocator() -> None:
         # environment the user gave.
         original = os.environ.pop(_ORIGINAL_PRELOAD, None)
         if original is not None:
-            # "=VALUE" where `LD_PRELOAD` was set (perhaps empty), "" where it was not.
-            if original.startswith("="):
-                os.environ["LD_PRELOAD"] = original[1:]
+            # "=" where `LD_PRELOAD` was set and empty (a non-empty one is never replaced), "" where
+            # it was not set.
+            if original == "=":
+                os.environ["LD_PRELOAD"] = ""
             else:
                 os.environ.pop("LD_PRELOAD", None)
         os.environ.pop(_TRIED, None)
