@@ -2,7 +2,7 @@
 # The measurements a lent GPU is for, as one script of at most 12 minutes:
 #   1. seconds per training step of the paper config, of the quick start's grid config and of
 #      the LLFF 3-view grid config (fern), each against the bare field's forward + backward over
-#      the same points on the same device (timing.py step: variants bare-mlp and mixnerf);
+#      the same points on the same device (step_time.py: variants bare-mlp and mixnerf);
 #      the grid configs with both lookups (grid.lookup = vmap, what "auto" takes on a GPU, and
 #      batched, what it takes on a CPU), so the per-backend choice can be checked;
 #   2. the fern 3-view grid config at full resolution (504 x 378) trained for 8 minutes of step
@@ -42,15 +42,15 @@ started=$(date +%s)
 say() { echo "[gpu_suite $(($(date +%s) - started)) s] $*"; }
 
 say "step time: the paper config (4096 rays, 128 + 128 samples, 8 x 256 MLP)"
-python benchmarks/timing.py step --repeats "$REPEATS" --variants bare-mlp mixnerf \
+python benchmarks/step_time.py --repeats "$REPEATS" --variants bare-mlp mixnerf \
     --out "$OUT/gpu_step_paper.json" "${PAPER[@]}"
 for lookup in vmap batched; do
     say "step time: the quick start's grid config, grid.lookup=$lookup"
-    python benchmarks/timing.py step --config configs/builtin_grid.toml --repeats "$REPEATS" \
+    python benchmarks/step_time.py --config configs/builtin_grid.toml --repeats "$REPEATS" \
         --variants bare-mlp mixnerf --out "$OUT/gpu_step_builtin_grid_$lookup.json" \
         "${SMALL[@]}" "grid.lookup=\"$lookup\""
     say "step time: the LLFF 3-view grid config on fern, grid.lookup=$lookup"
-    python benchmarks/timing.py step --config configs/llff3_grid.toml --repeats "$REPEATS" \
+    python benchmarks/step_time.py --config configs/llff3_grid.toml --repeats "$REPEATS" \
         --variants bare-mlp mixnerf --out "$OUT/gpu_step_llff3_grid_$lookup.json" \
         "${SMALL[@]}" "${FERN[@]}" "data.data_dir=\"$DATA\"" "grid.lookup=\"$lookup\""
 done

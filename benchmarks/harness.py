@@ -7,6 +7,10 @@
   timed to completion.
 - The schedule rule for short runs, output paths, machine description, table printing and
   result writing (every result file records the command that made it).
+- For the timing scripts (`step_time.py`, `profile_step.py`, `typecheck_overhead.py`,
+  `memory.py`, `quickstart.py`): their common arguments and default result path, the random
+  points a training step's field evaluates, and the marked line through which a measurement
+  run in a fresh process reports its result.
 
 Spec syntax (`error_vs_time.py`, `sample_count.py`):
 
@@ -48,6 +52,7 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import mixnerf_eqx as mx
@@ -412,6 +417,27 @@ def calibrate_steps(config: Config, dataset: Dataset, budget_s: float, repeats: 
     }
 
 
+# ----------------------------------------------------------------------------- the field alone
+
+
+def field_points(config: Config, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Random Gaussians, unit view directions and noise keys, as many as a training step
+    evaluates (batch x (coarse + fine))."""
+    count = config.train.batch_size * (config.model.num_coarse_samples + config.model.num_fine_samples)
+    keys = jax.random.split(key, 4)
+    means = jax.random.normal(keys[0], (count, 3))
+    covs = 1e-4 * jnp.abs(jax.random.normal(keys[1], (count, 3)))
+    viewdirs = jax.random.normal(keys[2], (count, 3))
+    viewdirs = viewdirs / jnp.linalg.norm(viewdirs, axis=-1, keepdims=True)
+    return means, covs, viewdirs, jax.random.split(keys[3], count)
+
+
+def summed_field(model: mx.MixNeRF, means, covs, viewdirs, keys=None) -> jax.Array:
+    """The field (as the model calls it: flat points, remat if configured), outputs summed."""
+    outputs = model.query_points(means, covs, viewdirs, keys)
+    return sum(jnp.sum(leaf) for leaf in jax.tree_util.tree_leaves(outputs))
+
+
 # ----------------------------------------------------------------------------- output
 
 
@@ -524,3 +550,27 @@ def save_figure(figure: Any, path: Path, dpi: int = 120) -> None:
     figure.savefig(path, dpi=dpi, metadata={"Comment": f"made by: {command_line()}"})
     plt.close(figure)
     print(f"plot written to {path}")
+
+
+# ----------------------------------------------------------------------------- timing scripts
+
+
+def default_out(out: str | None, name: str, backend: str | None = None) -> Path:
+    """`out`, or `benchmarks/results/<name>_<backend>.json` (backend: the one in use)."""
+    return Path(out) if out else RESULTS / f"{name}_{backend or platform_tag()}.json"
+
+
+def add_common(parser: argparse.ArgumentParser, default_config: str | None, out_name: str) -> None:
+    """`--config FILE`, `--out PATH` and the `section.key=value` overrides of a timing script."""
+    parser.add_argument(
+        "--config", default=default_config, help=f"TOML config (default: {default_config or 'the paper'})"
+    )
+    parser.add_argument("--out", default=None, help=f"JSON path (default: results/{out_name}_<backend>.json)")
+    parser.add_argument("overrides", nargs="*", help="config overrides, section.key=value")
+
+
+def marked_result(output: str, marker: str) -> dict[str, Any] | None:
+    """The JSON object on the last line of `output` that starts with `marker` (the line a
+    measurement run in a fresh process prints its result on), or None if there is none."""
+    lines = [line for line in output.splitlines() if line.startswith(marker)]
+    return json.loads(lines[-1][len(marker) :]) if lines else None
