@@ -76,7 +76,7 @@ def _test_rays(poses: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarr
 
 def run_report(run_dir: Path) -> dict:
     """The run's error by shape, and the ceiling's reprojection through the run's own geometry."""
-    run = mx.restore_run(run_dir)
+    run = mx.runs.restore_run(run_dir)
     dataset, model = run.dataset, run.model
     if dataset.name != "builtin":
         raise ValueError(f"{run_dir} is a run on {dataset.name!r}, not on the built-in scene")

@@ -48,10 +48,10 @@ MASSES = (0.5, 0.8, 0.9, 0.95)
 # The CPU-sized model of the benchmarks (fidelity.py) for fern; the built-in scene runs its
 # quick-start config as it is.
 CPU_MODEL = (
-    "model.width=64",
-    "model.depth=4",
-    "model.skip_layer=2",
-    "model.view_width=32",
+    "mlp.width=64",
+    "mlp.depth=4",
+    "mlp.skip_layer=2",
+    "mlp.view_width=32",
     "train.batch_size=512",
     "optim.warmup_steps=50",
     "loss.lambda_colour_steps=50",

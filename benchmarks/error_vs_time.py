@@ -5,13 +5,13 @@
 
     # CPU: a CPU-sized MLP and batch, cheap evaluations on 4x-downsampled test views
     python benchmarks/error_vs_time.py --data-dir ../shared/data --eval-downscale 4 \\
-        --set model.width=64 model.depth=4 model.skip_layer=2 model.view_width=32 train.batch_size=512
+        --set mlp.width=64 mlp.depth=4 mlp.skip_layer=2 mlp.view_width=32 train.batch_size=512
 
     # your own variants (see benchmarks/harness.py for the spec syntax)
     python benchmarks/error_vs_time.py --data-dir ../shared/data --scene lego \\
         --variant faithful=configs/blender4.toml \\
         --variant fast=configs/blender4.toml:model.num_coarse_samples=32,model.num_fine_samples=32,\
-model.matmul_dtype=bfloat16
+mlp.matmul_dtype=bfloat16
 
 Every variant is trained on every scene for `--budget-s` seconds of training time by its own
 loop over the library's `TrainState` and jitted step (`mx.init_train_state`,
@@ -120,7 +120,7 @@ def parse_args() -> argparse.Namespace:
         action="extend",
         default=[],
         metavar="KEY=VALUE",
-        help="config overrides for every variant (model.width=64 train.batch_size=512 ...)",
+        help="config overrides for every variant (mlp.width=64 train.batch_size=512 ...)",
     )
     parser.add_argument("--budget-s", type=float, default=480.0, help="training seconds per run")
     parser.add_argument(

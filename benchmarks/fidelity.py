@@ -70,10 +70,6 @@ from mixnerf_eqx.metrics import lpips_available
 # the paper's short phases (warm-up, lambda_C ramp, sample-space annealing) at 50 steps: the
 # paper's are 512 (256) of 44k-78k steps, which would be a third of these runs.
 COMMON = (
-    "model.width=64",
-    "model.depth=4",
-    "model.skip_layer=2",
-    "model.view_width=32",
     "model.num_coarse_samples=32",
     "model.num_fine_samples=32",
     "train.batch_size=512",
@@ -81,6 +77,8 @@ COMMON = (
     "loss.lambda_colour_steps=50",
     "train.checkpoint_every=0",
 )
+# The MLP's sizes (for `--field mlp` only: the grid fields have their own).
+CPU_MLP = ("mlp.width=64", "mlp.depth=4", "mlp.skip_layer=2", "mlp.view_width=32")
 
 # Scene -> (config with the paper's settings for its benchmark, protocol overrides). The
 # images are made small enough that 100 epochs take minutes: built-in 4 x 32x32 (4,096
@@ -165,7 +163,7 @@ def protocol_overrides(
 ) -> list[str]:
     """Everything the protocol sets for one run, but its length (`train.max_steps`)."""
     _, protocol = PROTOCOL[scene]
-    grid = () if field == "mlp" else (*FIELDS[field], GRID_BOX[scene])
+    grid = CPU_MLP if field == "mlp" else (*FIELDS[field], GRID_BOX[scene])
     return [
         *COMMON,
         *protocol,

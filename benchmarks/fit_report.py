@@ -25,7 +25,7 @@ def main() -> None:
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--montage", default=None, help="PNG of training views (left) and renders (right)")
     args = parser.parse_args()
-    run = mx.restore_run(args.run_dir, data_dir=args.data_dir)
+    run = mx.runs.restore_run(args.run_dir, data_dir=args.data_dir)
     dataset, model = run.dataset, run.model
 
     train = mx.render_views(model, dataset.train, dataset.near, dataset.far)

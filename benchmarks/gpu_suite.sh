@@ -28,7 +28,7 @@ mkdir -p "$OUT"
 if [ "${GPU_SUITE_TINY:-0}" = 1 ]; then
     REPEATS=1
     SMALL=(train.batch_size=64 model.num_coarse_samples=8 model.num_fine_samples=8)
-    PAPER=("${SMALL[@]}" model.width=16 model.depth=2 model.skip_layer=1 model.view_width=8)
+    PAPER=("${SMALL[@]}" mlp.width=16 mlp.depth=2 mlp.skip_layer=1 mlp.view_width=8)
     FERN=(data.image_downscale=8 grid.levels=2 grid.max_resolution=64)
     CURVE=(--budget-s 4 --eval-every-s 2 --eval-views 1 --calibrate-steps 1)
 else

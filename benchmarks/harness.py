@@ -78,7 +78,7 @@ MACROS = {
     "@fast": (
         "model.num_coarse_samples=32",
         "model.num_fine_samples=32",
-        'model.matmul_dtype="bfloat16"',
+        'mlp.matmul_dtype="bfloat16"',
     ),
 }
 
@@ -388,8 +388,10 @@ class TrainingRun:
             return None
         key = mx.occupancy_key(self.state.key, self.step + 1)
         occupancy = dataclasses.replace(self.config.occupancy, calibrate=False)
-        grid, _ = mx.grid_for_rendering(occupancy, self.dataset, self.model, key=key, grid=self.state.grid)
-        return mx.make_skipping(self.config.occupancy, grid)
+        grid, _ = mx.runs.grid_for_rendering(
+            occupancy, self.dataset, self.model, key=key, grid=self.state.grid
+        )
+        return mx.runs.make_skipping(self.config.occupancy, grid)
 
     def render_chunk(self, chunk: int | None = None) -> int:
         """`chunk`, or the config's: `occupancy.chunk` with skipping, else `train.render_chunk`."""
@@ -469,11 +471,11 @@ def grid_threshold(grid: mx.OccupancyGrid) -> float:
 
 
 def model_summary(config: Config) -> dict[str, Any]:
-    model = config.model
+    model, mlp = config.model, config.mlp
     return {
-        "mlp": f"{model.depth}x{model.width}",
+        "mlp": f"{mlp.depth}x{mlp.width}",
         "samples": [model.num_coarse_samples, model.num_fine_samples],
-        "matmul_dtype": model.matmul_dtype,
+        "matmul_dtype": mlp.matmul_dtype,
         "batch_size": config.train.batch_size,
         "method": config.method,
         "occupancy": config.occupancy.enabled,

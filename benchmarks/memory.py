@@ -223,7 +223,7 @@ def measure_machine(config: mx.Config) -> dict[str, Any]:
         },
         "config": {
             **harness.model_summary(config),
-            "view_width": config.model.view_width,
+            "view_width": config.mlp.view_width,
             "remat": config.model.remat,
             "render_chunk": config.train.render_chunk,
         },

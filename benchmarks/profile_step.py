@@ -253,7 +253,7 @@ def run(args: argparse.Namespace) -> None:
     widths = (
         [f"grid.decoder_width={width}", f"grid.view_width={width}"]
         if config.model.field == "grid"
-        else [f"model.width={width}", f"model.view_width={width}"]
+        else [f"mlp.width={width}", f"mlp.view_width={width}"]
     )
     narrow = mx.load_config(args.config, [*args.overrides, *widths])
     rows[f"step, width-{width} field"] = step_rows(narrow, dataset, args.repeats, loss=False)["step"]

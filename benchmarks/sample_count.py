@@ -8,7 +8,7 @@
 
     # CPU: a CPU-sized MLP and batch, fewer steps, 2x-downsampled test views
     python benchmarks/sample_count.py --data-dir ../shared/data --steps 300 --eval-downscale 2 \\
-        --set model.width=64 model.depth=4 model.skip_layer=2 model.view_width=32 train.batch_size=512
+        --set mlp.width=64 mlp.depth=4 mlp.skip_layer=2 mlp.view_width=32 train.batch_size=512
 
 For each scene, each sample count N (N coarse + N fine samples per ray, the paper's "samples
 per ray at each level") and each variant (default: `mixnerf`, the scene's paper config, and
@@ -25,8 +25,8 @@ full frame over the views (ray generation on the host, rendering and the copy ba
 and the field (MLP) evaluations per frame, pixels x (coarse + fine) for the dense renderer
 (also with the last chunk's padding). With `--skipping` (the default) every model is also rendered by the
 renderer that skips empty space and finished rays, with a grid built from the trained model
-and the config's `[occupancy]` settings (`mx.grid_for_rendering`: the threshold calibrated
-when `occupancy.calibrate` is on; `--set occupancy.density_threshold=...` changes them), and
+and the config's `[occupancy]` settings (`mx.runs.grid_for_rendering`: the threshold chosen
+when `occupancy.choose_threshold` is on; `--set occupancy.density_threshold=...` changes them), and
 its PSNR, seconds and evaluations per frame are reported beside the dense ones.
 
 Outputs: `sample_count_<tag>.jsonl` in `--out` (default benchmarks/results; tag: the JAX
@@ -229,9 +229,11 @@ def run_one(args, scene, variant, samples: int, cache: DatasetCache) -> dict[str
     renders = benchmark_renders(run.model, dataset, chunk)
     if args.skipping:
         started = time.perf_counter()
-        grid, _ = mx.grid_for_rendering(config.occupancy, dataset, run.model, key=jax.random.key(args.steps))
+        grid, _ = mx.runs.grid_for_rendering(
+            config.occupancy, dataset, run.model, key=jax.random.key(args.steps)
+        )
         grid_s = time.perf_counter() - started
-        skipped = benchmark_renders(run.model, dataset, chunk, mx.make_skipping(config.occupancy, grid))
+        skipped = benchmark_renders(run.model, dataset, chunk, mx.runs.make_skipping(config.occupancy, grid))
         record["skipping"] = {
             "occupancy": dataclasses.asdict(config.occupancy),
             "density_threshold": grid_threshold(grid),

@@ -26,11 +26,11 @@ from mixnerf_eqx.data import load_dataset
 
 SCENES = {"lego": "blender4.toml", "fern": "llff3.toml"}
 SMALL = [
-    "model.width=64",
-    "model.depth=4",
-    "model.skip_layer=2",
-    "model.view_width=32",
-    "model.max_deg=10",
+    "mlp.width=64",
+    "mlp.depth=4",
+    "mlp.skip_layer=2",
+    "mlp.view_width=32",
+    "mlp.max_deg=10",
     "model.num_coarse_samples=32",
     "model.num_fine_samples=32",
     "train.batch_size=512",

@@ -11,12 +11,12 @@ printed beside it.
 
     python benchmarks/skipping.py RUN_DIR [--data-dir ../shared/data] [--max-views 4]
 
-The run is read with `mx.restore_run`, and the occupancy grid rebuilt from the checkpoint by
-`mx.grid_for_rendering` (every cell evaluated once); its cost is reported as `grid_seconds`.
+The run is read with `mx.runs.restore_run`, and the occupancy grid rebuilt from the checkpoint by
+`mx.runs.grid_for_rendering` (every cell evaluated once); its cost is reported as `grid_seconds`.
 The `--thresholds` rows use each threshold as given; the `--calibrate` rows (one per
-tolerance) let `mixnerf_eqx.calibrate_threshold` choose it on `--calibrate-rays` training
+tolerance) let `mixnerf_eqx.choose_threshold` choose it on `--calibrate-rays` training
 pixels, starting from the smallest of `--thresholds`, as `fit` and `python -m mixnerf_eqx.eval`
-do with `occupancy.calibrate` on; their `grid_seconds` include the calibration. Each setting
+do with `occupancy.choose_threshold` on; their `grid_seconds` include the calibration. Each setting
 renders the selected views twice and times the second pass, so that compiling the buffer sizes
 a setting needs is not timed.
 
@@ -83,7 +83,7 @@ def _render(model, views, dataset, chunk, skipping):
 
 def main(argv=None):
     args = parse_args(argv)
-    run = mx.restore_run(args.run_dir, data_dir=args.data_dir)
+    run = mx.runs.restore_run(args.run_dir, data_dir=args.data_dir)
     dataset, model, step, key = run.dataset, run.model, run.step, run.state.key
     occupancy = dataclasses.replace(run.config.occupancy, resolution=args.resolution)
     if args.box_radius is not None:
@@ -114,13 +114,15 @@ def main(argv=None):
                 occupancy,
                 density_threshold=threshold,
                 dilation=dilation,
-                calibrate=tolerance is not None,
-                calibrate_tolerance_db=0.0 if tolerance is None else tolerance,
-                calibrate_rays=args.calibrate_rays,
+                choose_threshold=tolerance is not None,
+                threshold_tolerance_db=0.0 if tolerance is None else tolerance,
+                threshold_rays=args.calibrate_rays,
                 stop_transmittance=min(args.stops),
             )
             started = time.perf_counter()
-            grid, _ = mx.grid_for_rendering(grid_occupancy, dataset, model, key=jax.random.fold_in(key, step))
+            grid, _ = mx.runs.grid_for_rendering(
+                grid_occupancy, dataset, model, key=jax.random.fold_in(key, step)
+            )
             grid.density.block_until_ready()
             grid_seconds = time.perf_counter() - started
             threshold_used = grid_threshold(grid)

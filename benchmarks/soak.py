@@ -49,11 +49,11 @@ TINY = [
     "data.resolution=32",
     "data.num_train_views=4",
     "data.num_test_views=3",
-    "model.width=32",
-    "model.depth=2",
-    "model.skip_layer=1",
-    "model.view_width=16",
-    "model.max_deg=8",
+    "mlp.width=32",
+    "mlp.depth=2",
+    "mlp.skip_layer=1",
+    "mlp.view_width=16",
+    "mlp.max_deg=8",
     "model.num_coarse_samples=16",
     "model.num_fine_samples=16",
     "optim.lr_init=5e-3",
@@ -122,7 +122,7 @@ def what_it_was_doing(before: list[dict], after: list[dict], status: int, stderr
 
 def state_leaves(run_dir: Path) -> list[np.ndarray]:
     """Every array of the run's final state (parameters, optimiser state, key, step)."""
-    run = mx.restore_run(run_dir)
+    run = mx.runs.restore_run(run_dir)
     leaves = jax.tree_util.tree_leaves(eqx.filter(run.state, eqx.is_array))
     return [
         np.asarray(jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x)

@@ -35,7 +35,7 @@ STEP_VARIANTS = {
     "mixnerf": [],
     "mipnerf": ["method=mipnerf"],
     "mixnerf-colour-only": ["loss.lambda_depth=0.0", "loss.lambda_regen=0.0"],
-    "mixnerf-bf16": ['model.matmul_dtype="bfloat16"'],
+    "mixnerf-bf16": ['mlp.matmul_dtype="bfloat16"'],
 }
 
 

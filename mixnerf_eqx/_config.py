@@ -6,7 +6,7 @@ checkout is a link to that folder), so `load_config("llff3_grid")` works after a
 
 This module is the bottom layer: it imports nothing of the model, so that loading a scene
 (`data/`) or reading a run's settings does not build or import one. What each section means
-for the model is decided where the model is built (`mixnerf_eqx._model.build_model`).
+for the model is decided where the model is built (`mixnerf_eqx._nn.model.build_model`).
 """
 
 import dataclasses
@@ -44,24 +44,35 @@ class DataConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
+    """What every field shares: the samplers, the view encoding, the heads and the choice of
+    field; each field's own keys are in its section ([mlp] or [grid])."""
+
+    field: Literal["mlp", "grid"] = (
+        "mlp"  # the mip-NeRF MLP ([mlp], the paper's), or a grid and decoder ([grid])
+    )
+    viewdir_max_deg: int = 4  # view-direction frequencies 2^0 .. 2^(viewdir_max_deg-1)
+    num_coarse_samples: int = 128  # samples per ray at the coarse level
+    num_fine_samples: int = 128  # samples per ray at the fine level
+    density_bias: float = -1.0  # shift of the raw density before the softplus
+    rgb_padding: float = 0.001  # colour range padding
+    resample_padding: float = 0.01  # added to the blurred coarse weights before resampling
+    lindisp: bool = False  # space coarse samples linearly in disparity
+    frustum: Literal["auto", "cone", "cylinder"] = "auto"  # "auto": what the dataset says
+    remat: bool = False  # recompute field activations in the backward pass (less memory, ~1/3 more compute)
+
+
+@dataclasses.dataclass(frozen=True)
+class MLPConfig:
+    """The mip-NeRF MLP field (`model.field = "mlp"`, the paper's)."""
+
     width: int = 256  # trunk width (mip-NeRF: 256)
     depth: int = 8  # trunk depth (mip-NeRF: 8)
     view_width: int = 128  # width of the view-dependent layer (mip-NeRF: 128)
     skip_layer: int = 4  # input concatenated again after this trunk layer
     min_deg: int = 0  # lowest IPE frequency exponent
     max_deg: int = 16  # IPE frequencies 2^min_deg .. 2^(max_deg-1)
-    viewdir_max_deg: int = 4  # view-direction frequencies 2^0 .. 2^(viewdir_max_deg-1)
-    num_coarse_samples: int = 128  # samples per ray at the coarse level
-    num_fine_samples: int = 128  # samples per ray at the fine level
     density_noise: float = 1.0  # std of the raw-density noise in training
-    density_bias: float = -1.0  # shift of the raw density before the softplus
-    rgb_padding: float = 0.001  # colour range padding
-    resample_padding: float = 0.01  # added to the blurred coarse weights before resampling
-    lindisp: bool = False  # space coarse samples linearly in disparity
-    frustum: Literal["auto", "cone", "cylinder"] = "auto"  # "auto": what the dataset says
-    remat: bool = False  # recompute MLP activations in the backward pass (less memory, ~1/3 more compute)
     matmul_dtype: Literal["float32", "bfloat16"] = "float32"  # dtype of the field's matrix products
-    field: Literal["mlp", "grid"] = "mlp"  # the mip-NeRF MLP (the paper's), or a grid and decoder ([grid])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -156,12 +167,12 @@ class OccupancyConfig:
         0.0  # > 0: the grid spans [-r, r]^3 and nothing lies outside; 0: the training frusta's box
     )
     density_threshold: float = 0.01  # a cell is occupied where its density exceeds this (with
-    # calibrate: the smallest threshold tried)
-    calibrate: bool = True  # for a trained model's renders, raise the threshold as far as the
-    # calibration rays allow (mixnerf_eqx._calibrate)
-    calibrate_tolerance_db: float = 0.1  # largest bound on the PSNR lost on the calibration rays
-    calibrate_rays: int = 4096  # calibration rays: random pixels of the training views
-    calibrate_doublings: int = 14  # the threshold tried goes up to density_threshold * 2^this
+    # choose_threshold: the smallest threshold tried)
+    choose_threshold: bool = True  # for a trained model's renders, raise the threshold as far as
+    # the threshold rays allow (mixnerf_eqx._inference.threshold)
+    threshold_tolerance_db: float = 0.1  # largest bound on the PSNR lost on the threshold rays
+    threshold_rays: int = 4096  # random pixels of the training views the threshold is chosen on
+    threshold_doublings: int = 14  # the threshold tried goes up to density_threshold * 2^this
     dilation: int = 1  # occupied cells also mark this many neighbouring cells on every side
     decay: float = 0.95  # each update keeps max(decay * old, new) per cell
     update_every: int = 16  # training steps between grid updates
@@ -183,6 +194,7 @@ class Config:
     method: Literal["mixnerf", "mipnerf"] = "mixnerf"  # MixNeRF, or its mip-NeRF baseline (no mixture)
     data: DataConfig = DataConfig()
     model: ModelConfig = ModelConfig()
+    mlp: MLPConfig = MLPConfig()
     grid: GridConfig = GridConfig()
     loss: LossConfig = LossConfig()
     optim: OptimConfig = OptimConfig()
@@ -227,9 +239,9 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "data.num_train_views",
             "data.num_test_views",
             "data.image_downscale",
-            "model.width",
-            "model.depth",
-            "model.view_width",
+            "mlp.width",
+            "mlp.depth",
+            "mlp.view_width",
             "model.num_coarse_samples",
             "model.num_fine_samples",
             "optim.lr_init",
@@ -238,7 +250,7 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "train.batch_size",
             "train.render_chunk",
             "train.max_nonfinite_steps",
-            "occupancy.calibrate_rays",
+            "occupancy.threshold_rays",
             "occupancy.update_every",
             "occupancy.segments",
             "occupancy.chunk",
@@ -258,10 +270,10 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "data.max_val_views",
             "data.near",
             "data.far",
-            "model.skip_layer",
-            "model.min_deg",
+            "mlp.skip_layer",
+            "mlp.min_deg",
             "model.viewdir_max_deg",
-            "model.density_noise",
+            "mlp.density_noise",
             "model.rgb_padding",
             "model.resample_padding",
             "loss.lambda_colour_steps",
@@ -277,8 +289,8 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "train.checkpoint_every",
             "occupancy.box_radius",
             "occupancy.density_threshold",
-            "occupancy.calibrate_tolerance_db",
-            "occupancy.calibrate_doublings",
+            "occupancy.threshold_tolerance_db",
+            "occupancy.threshold_doublings",
             "occupancy.dilation",
             "grid.geo_features",
             "grid.box_radius",
@@ -290,7 +302,7 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
     ("grid.min_resolution", *_at_least(2)),
     ("loss.smoothness_patch_size", *_at_least(2)),
     ("grid.hash_table_log2", *_within(3, 30)),
-    ("model.max_deg", *_at_least(1)),
+    ("mlp.max_deg", *_at_least(1)),
     ("train.max_steps", lambda value: value <= _INT32_MAX, f"must be at most {_INT32_MAX} (int32 steps)"),
     ("train.anneal_start", *_within(0, 1, low_open=True)),
     *((key, *_within(0, 1)) for key in (f"{section}.{name}_fraction" for section, name in _SCHEDULE_KEYS)),
@@ -303,7 +315,7 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
 
 
 # The weights of the loss terms (`[loss]` keys), each at least 0: filled by the loss registry
-# (`mixnerf_eqx._loss.register_loss_term`), with whether the term is one of MixNeRF's own.
+# (`mixnerf_eqx._train.loss.register_loss_term`), with whether the term is one of MixNeRF's own.
 _LOSS_WEIGHTS: dict[str, bool] = {}
 
 
@@ -322,23 +334,50 @@ def _setting(config: "Config", key: str) -> Any:
     return getattr(getattr(config, section), name)
 
 
+# Each field's own section; the sections of the fields a config does not use stay at their
+# defaults (a key set there would be ignored, so it is an error).
+FIELD_SECTIONS = {"mlp": "mlp", "grid": "grid"}
+
+
+def _inapplicable(config: "Config") -> list[str]:
+    """The keys set in the section of a field that `model.field` does not choose."""
+    problems = []
+    for field, section in FIELD_SECTIONS.items():
+        if field == config.model.field:
+            continue
+        values, defaults = getattr(config, section), _SECTIONS[section]()
+        changed = [
+            f.name for f in dataclasses.fields(values) if getattr(values, f.name) != getattr(defaults, f.name)
+        ]
+        if changed:
+            listed = ", ".join(f"{section}.{name} = {getattr(values, name)!r}" for name in changed)
+            problems.append(
+                f"{listed}: [{section}] does not apply to model.field = {config.model.field!r}; remove "
+                f"{'it' if len(changed) == 1 else 'them'} (a config that sets model.field starts the "
+                "other fields' sections from their defaults)"
+            )
+    return problems
+
+
 def _consistency_problems(config: "Config") -> list[str]:
     """Settings that are each in range but cannot be used together."""
     problems = []
-    model, data, loss, occupancy = config.model, config.data, config.loss, config.occupancy
+    data, loss, occupancy = config.data, config.loss, config.occupancy
     nll_weights = [getattr(loss, key) for key, mixture in _LOSS_WEIGHTS.items() if mixture]
     if config.method == "mixnerf" and nll_weights and not any(nll_weights):
         problems.append(
             'every mixture loss weight is zero: for the mip-NeRF baseline set method = "mipnerf" '
             "(the method is no longer inferred from the lambdas)"
         )
-    if model.skip_layer >= model.depth:
+    mlp = config.mlp
+    if mlp.skip_layer >= mlp.depth:
         problems.append(
-            f"model.skip_layer must be below model.depth ({model.depth}), got {model.skip_layer} "
+            f"mlp.skip_layer must be below mlp.depth ({mlp.depth}), got {mlp.skip_layer} "
             "(0: no skip connection)"
         )
-    if model.min_deg >= model.max_deg:
-        problems.append(f"model.min_deg ({model.min_deg}) must be below model.max_deg ({model.max_deg})")
+    if mlp.min_deg >= mlp.max_deg:
+        problems.append(f"mlp.min_deg ({mlp.min_deg}) must be below mlp.max_deg ({mlp.max_deg})")
+    problems += _inapplicable(config)
     if config.grid.max_resolution < config.grid.min_resolution:
         problems.append(
             f"grid.max_resolution ({config.grid.max_resolution}) must be at least grid.min_resolution "
@@ -348,9 +387,9 @@ def _consistency_problems(config: "Config") -> list[str]:
         problems.append(f"data.near ({data.near:g}) must be below data.far ({data.far:g})")
     if not config.train.run_dir.strip():
         problems.append("train.run_dir must name a folder (it is empty)")
-    if occupancy.calibrate and occupancy.density_threshold <= 0:
+    if occupancy.choose_threshold and occupancy.density_threshold <= 0:
         problems.append(
-            "occupancy.calibrate needs occupancy.density_threshold > 0 (the first threshold tried)"
+            "occupancy.choose_threshold needs occupancy.density_threshold > 0 (the first threshold tried)"
         )
     if "jsonl" not in config.train.log_to:
         problems.append(
@@ -421,6 +460,7 @@ _TOP_LEVEL = ("name", "reproduces", "chosen_on", "method")
 _SECTIONS = {
     "data": DataConfig,
     "model": ModelConfig,
+    "mlp": MLPConfig,
     "grid": GridConfig,
     "loss": LossConfig,
     "optim": OptimConfig,
@@ -472,6 +512,48 @@ def _coerce(value: Any, annotation: Any, where: str) -> Any:
 _REMOVED_KEYS = {
     ("train", "typecheck"): "shape checks are switched by --no-typecheck (or JAXTYPING_DISABLE=1)",
 }
+# Keys that moved to another section or were renamed: read as the new key, with a warning
+# naming it, so that old files, command lines and run folders (`config.json`) still load.
+_MOVED_KEYS = {
+    **{
+        ("model", key): ("mlp", key)
+        for key in ("width", "depth", "view_width", "skip_layer", "min_deg", "max_deg", "density_noise")
+    },
+    ("model", "matmul_dtype"): ("mlp", "matmul_dtype"),
+    ("occupancy", "calibrate"): ("occupancy", "choose_threshold"),
+    ("occupancy", "calibrate_tolerance_db"): ("occupancy", "threshold_tolerance_db"),
+    ("occupancy", "calibrate_rays"): ("occupancy", "threshold_rays"),
+    ("occupancy", "calibrate_doublings"): ("occupancy", "threshold_doublings"),
+}
+
+
+def _upgrade(values: dict[str, Any], source: str, base: "Config") -> dict[str, Any]:
+    """`values` with the keys of `_MOVED_KEYS` under their new names. A moved key of a field
+    the config does not use (an old grid run's `model.width`, which it never read) is dropped."""
+    model = values.get("model")
+    field = model.get("field", base.model.field) if isinstance(model, dict) else base.model.field
+    upgraded = {key: dict(value) if isinstance(value, dict) else value for key, value in values.items()}
+    for (section, key), (new_section, new_key) in _MOVED_KEYS.items():
+        table, target = upgraded.get(section), upgraded.setdefault(new_section, {})
+        if not isinstance(table, dict) or key not in table or not isinstance(target, dict):
+            continue
+        if new_key in target:
+            raise ConfigError(
+                f"{source}: {section}.{key} and {new_section}.{new_key} both given; {section}.{key} is "
+                f"the old name of {new_section}.{new_key}"
+            )
+        value = table.pop(key)
+        if new_section in FIELD_SECTIONS.values() and FIELD_SECTIONS.get(field) != new_section:
+            message = f"does not apply to model.field = {field!r}: ignored"
+        else:
+            target[new_key] = value
+            message = "read as that"
+        warnings.warn(
+            f"{source}: {section}.{key} is now {new_section}.{new_key}; {message}",
+            FutureWarning,
+            stacklevel=3,
+        )
+    return {key: value for key, value in upgraded.items() if value != {} or key in values}
 
 
 def _apply(base: Any, values: dict[str, Any], where: str) -> Any:
@@ -503,6 +585,14 @@ def config_from_dict(values: dict[str, Any], source: str = "<dict>", base: Confi
     Unknown sections or keys raise a `ConfigError` naming the key and `source`.
     """
     base = Config() if base is None else base
+    values = _upgrade(values, source, base)
+    model = values.get("model")
+    field = model.get("field", base.model.field) if isinstance(model, dict) else base.model.field
+    if field != base.model.field and field in FIELD_SECTIONS and base.model.field in FIELD_SECTIONS:
+        # Switching the field starts from the defaults of the section it leaves (a grid config
+        # extending an MLP config does not inherit the MLP's sizes).
+        left = FIELD_SECTIONS[base.model.field]
+        base = dataclasses.replace(base, **{left: _SECTIONS[left]()})
     top_updates = {}
     section_updates = {}
     for key, value in values.items():

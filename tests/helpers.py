@@ -276,11 +276,11 @@ TINY_OVERRIDES = [
     "data.resolution=32",
     "data.num_train_views=4",
     "data.num_test_views=3",
-    "model.width=32",
-    "model.depth=2",
-    "model.skip_layer=1",
-    "model.view_width=16",
-    "model.max_deg=8",
+    "mlp.width=32",
+    "mlp.depth=2",
+    "mlp.skip_layer=1",
+    "mlp.view_width=16",
+    "mlp.max_deg=8",
     "model.num_coarse_samples=16",
     "model.num_fine_samples=16",
     "optim.lr_init=5e-3",
@@ -292,3 +292,5 @@ TINY_OVERRIDES = [
     "train.max_steps=150",
     "train.checkpoint_every=0",
 ]
+# The same for a run of the grid field: the MLP's own keys would not apply to it (an error).
+TINY_SHARED_OVERRIDES = [o for o in TINY_OVERRIDES if not o.startswith("mlp.")]

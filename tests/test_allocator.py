@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 from helpers import TINY_OVERRIDES
 
-from mixnerf_eqx import _allocator
-from mixnerf_eqx._allocator import allocator_library
+from mixnerf_eqx._util import allocator as _allocator
+from mixnerf_eqx._util.allocator import allocator_library
 
 linux_only = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="LD_PRELOAD and /proc are Linux's"

@@ -10,7 +10,7 @@ from pathlib import Path
 import jax
 import pytest
 
-from mixnerf_eqx._compilation_cache import (
+from mixnerf_eqx._util.compilation_cache import (
     add_compilation_cache_argument,
     default_cache_dir,
     use_compilation_cache,
@@ -45,7 +45,7 @@ def test_a_folder_jax_already_has_is_kept_and_the_flag_turns_it_off():
 
 PROBE = """
 import time, jax, jax.numpy as jnp
-from mixnerf_eqx._compilation_cache import add_compilation_cache_argument, use_compilation_cache
+from mixnerf_eqx._util.compilation_cache import add_compilation_cache_argument, use_compilation_cache
 import argparse
 parser = argparse.ArgumentParser(); add_compilation_cache_argument(parser)
 print(use_compilation_cache(parser.parse_args([])))
@@ -75,7 +75,7 @@ def test_an_unusable_folder_is_reported_and_the_command_goes_on(monkeypatch, tmp
     blocker.write_text("")
     monkeypatch.setenv("MIXNERF_COMPILATION_CACHE", str(blocker / "cache"))
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr("mixnerf_eqx._compilation_cache.jax.config", _NoCache())
+        patch.setattr("mixnerf_eqx._util.compilation_cache.jax.config", _NoCache())
         assert use_compilation_cache(_args()) is None
     assert "compilation cache off" in capsys.readouterr().out
 

@@ -1,4 +1,5 @@
 import dataclasses
+import importlib
 import re
 from pathlib import Path
 
@@ -53,7 +54,7 @@ def test_unknown_key_names_key_and_file(tmp_path):
 
 
 def test_an_unknown_override_is_named_first_on_its_own_line():
-    overrides = ["train.max_steps=10", "model.width=5", "train.bogus=3"]
+    overrides = ["train.max_steps=10", "mlp.width=5", "train.bogus=3"]
     with pytest.raises(ConfigError) as error:
         load_config(None, overrides)
     first, *rest = str(error.value).splitlines()
@@ -134,6 +135,76 @@ def test_removed_keys_of_older_runs_warn_and_are_ignored():
     assert old == stored
 
 
+def test_renamed_keys_of_older_runs_warn_and_are_read_as_the_new_key():
+    """The occupancy threshold's keys lost the word "calibrate": an old run folder's config or
+    an old command line still reads, with a warning that names the new key."""
+    with pytest.warns(FutureWarning) as record:
+        old = mx.config_from_dict({"occupancy": {"calibrate": False, "calibrate_rays": 512}})
+    assert [str(w.message) for w in record] == [
+        "<dict>: occupancy.calibrate is now occupancy.choose_threshold; read as that",
+        "<dict>: occupancy.calibrate_rays is now occupancy.threshold_rays; read as that",
+    ]
+    assert old.occupancy.choose_threshold is False and old.occupancy.threshold_rays == 512
+    assert old == mx.config_from_dict({"occupancy": {"choose_threshold": False, "threshold_rays": 512}})
+    with pytest.warns(FutureWarning, match="occupancy.calibrate is now occupancy.choose_threshold"):
+        assert load_config(None, ["occupancy.calibrate=false"]).occupancy.choose_threshold is False
+    with pytest.raises(ConfigError, match="calibrate_doublings and occupancy.threshold_doublings both given"):
+        mx.config_from_dict({"occupancy": {"calibrate_doublings": 3, "threshold_doublings": 4}})
+
+
+def test_each_field_reads_its_own_section_and_a_key_of_another_field_is_an_error(tmp_path):
+    """[model] holds what every field shares, [mlp] and [grid] each field's own keys; a key set
+    in the section of a field the config does not use is an error that names it."""
+    grid = load_config("builtin_grid")
+    # A config that switches the field starts the section it leaves from its defaults.
+    assert load_config("builtin").mlp.width == 64 and grid.mlp == mx.config_from_dict({}).mlp
+    assert load_config("builtin", ["model.field=grid"]).mlp == grid.mlp
+    with pytest.raises(ConfigError, match=r"mlp.width = 64: \[mlp\] does not apply to model.field = 'grid'"):
+        load_config("builtin_grid", ["mlp.width=64"])
+    with pytest.raises(ConfigError, match=r"grid.levels = 2, grid.features = 4: \[grid\] does not apply"):
+        load_config("builtin", ["grid.levels=2", "grid.features=4"])
+    (tmp_path / "mixed.toml").write_text('[model]\nfield = "grid"\n[mlp]\ndepth = 3\n')
+    with pytest.raises(ConfigError, match="mlp.depth = 3"):
+        load_config(tmp_path / "mixed.toml")
+
+
+def test_old_model_keys_of_a_field_name_their_new_section():
+    """Files, command lines and run folders from before [mlp] still load, with a warning that
+    names the new key; an old grid run's MLP keys, which it never read, are dropped."""
+    with pytest.warns(FutureWarning, match=r"model\.width is now mlp\.width; read as that"):
+        old = mx.config_from_dict({"model": {"width": 48, "num_coarse_samples": 8}})
+    assert (old.mlp.width, old.model.num_coarse_samples) == (48, 8)
+    with pytest.warns(FutureWarning, match="model.matmul_dtype is now mlp.matmul_dtype"):
+        assert load_config(None, ['model.matmul_dtype="bfloat16"']).mlp.matmul_dtype == "bfloat16"
+    old_grid_run = {"model": {"field": "grid", "width": 64, "depth": 4}, "grid": {"levels": 3}}
+    with pytest.warns(FutureWarning) as record:
+        restored = mx.config_from_dict(old_grid_run)
+    assert [str(w.message) for w in record] == [
+        f"<dict>: model.{key} is now mlp.{key}; does not apply to model.field = 'grid': ignored"
+        for key in ("width", "depth")
+    ]
+    assert restored.mlp == mx.config_from_dict({}).mlp and restored.grid.levels == 3
+    with pytest.raises(ConfigError, match="model.depth and mlp.depth both given"):
+        mx.config_from_dict({"model": {"depth": 3}, "mlp": {"depth": 4}})
+
+
+def test_moved_public_names_say_where_they_went():
+    """Run-folder helpers live in `mx.runs`; the threshold's functions lost "calibrate"."""
+    for old, new in [
+        ("restore_run", "mixnerf_eqx.runs.restore_run"),
+        ("save_checkpoint", "mixnerf_eqx.runs.save_checkpoint"),
+        ("calibrate_threshold", "mixnerf_eqx.choose_threshold"),
+        ("calibration_rays", "mixnerf_eqx.threshold_rays"),
+    ]:
+        with pytest.raises(AttributeError, match=f"mixnerf_eqx.{old} has moved: use {new}"):
+            getattr(mx, old)
+        module, _, name = new.rpartition(".")
+        assert callable(getattr(importlib.import_module(module), name))
+    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
+        mx.no_such_name  # noqa: B018
+    assert not hasattr(mx, "hold_folder") and mx.runs.FolderBusyError is mx.FolderBusyError
+
+
 def test_schema_imports_no_model():
     """Loading a config or a scene must not import the model: `_config` is the bottom layer."""
     import subprocess
@@ -164,11 +235,11 @@ def test_paper_architecture_sizes():
 
 def test_extends_inherits_and_overrides(tmp_path):
     (tmp_path / "base.toml").write_text(
-        'name = "base"\nreproduces = "x"\n[model]\nwidth = 48\ndepth = 3\nskip_layer = 2\n'
+        'name = "base"\nreproduces = "x"\n[mlp]\nwidth = 48\ndepth = 3\nskip_layer = 2\n'
     )
-    (tmp_path / "child.toml").write_text('extends = "base.toml"\nname = "child"\n[model]\ndepth = 5\n')
+    (tmp_path / "child.toml").write_text('extends = "base.toml"\nname = "child"\n[mlp]\ndepth = 5\n')
     config = load_config(tmp_path / "child.toml")
-    assert (config.name, config.model.width, config.model.depth) == ("child", 48, 5)
+    assert (config.name, config.mlp.width, config.mlp.depth) == ("child", 48, 5)
     (tmp_path / "loop.toml").write_text('extends = "loop.toml"\n')
     with pytest.raises(ConfigError, match="cycle"):
         load_config(tmp_path / "loop.toml")
@@ -221,4 +292,4 @@ def test_paper_configs_hold_the_published_hyperparameters(
     assert config.loss.lambda_regen == lambda_regen
     assert config.train.max_steps == max_steps
     assert config.optim.lr_init == lr_init
-    assert (config.model.width, config.model.num_coarse_samples, config.train.batch_size) == (256, 128, 4096)
+    assert (config.mlp.width, config.model.num_coarse_samples, config.train.batch_size) == (256, 128, 4096)

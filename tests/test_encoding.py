@@ -17,7 +17,7 @@ from helpers import (
 )
 
 from mixnerf_eqx import frustum_gaussians, integrated_positional_encoding, positional_encoding
-from mixnerf_eqx._encoding import conical_frustum_moments, cylinder_moments
+from mixnerf_eqx._nn.encoding import conical_frustum_moments, cylinder_moments
 
 # --- positional encoding ----------------------------------------------------------------
 

@@ -10,9 +10,9 @@ from PIL import Image
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import evaluate, fit, render_rays, render_views
-from mixnerf_eqx._evaluate import join_chunks, map_ray_chunks
+from mixnerf_eqx._inference.evaluation import join_chunks, map_ray_chunks
+from mixnerf_eqx.cli.eval import main as eval_main
 from mixnerf_eqx.data import rays_for_views
-from mixnerf_eqx.eval import main as eval_main
 from mixnerf_eqx.metrics import lpips_available
 
 
@@ -211,7 +211,7 @@ def test_the_chunk_map_sees_whole_chunks_and_returns_every_ray_once(count, chunk
 
 
 def test_curves_need_a_log_and_plot_every_non_zero_term(trained, tmp_path, capsys):
-    from mixnerf_eqx._curves import plot_curves, read_log
+    from mixnerf_eqx._util.curves import plot_curves, read_log
 
     assert plot_curves(tmp_path) is None
     assert "does not exist" in capsys.readouterr().out
@@ -223,7 +223,7 @@ def test_curves_need_a_log_and_plot_every_non_zero_term(trained, tmp_path, capsy
 def test_curves_survive_a_skipped_step_and_a_line_cut_short(tmp_path):
     """A skipped step logs `null` for its loss terms and a kill can leave half a line: the
     figure is still drawn, with gaps."""
-    from mixnerf_eqx._curves import plot_curves, read_log
+    from mixnerf_eqx._util.curves import plot_curves, read_log
 
     entries = [
         {

@@ -13,10 +13,10 @@ import pytest
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import AbstractField, FieldOutputs, build_field
-from mixnerf_eqx._field.base import vmap_field
-from mixnerf_eqx._field.heads import MixtureHeads
+from mixnerf_eqx._nn.field.base import vmap_field
+from mixnerf_eqx._nn.field.heads import MixtureHeads
 
-SMALL_MLP = ["model.width=16", "model.depth=2", "model.skip_layer=1", "model.view_width=8", "model.max_deg=4"]
+SMALL_MLP = ["mlp.width=16", "mlp.depth=2", "mlp.skip_layer=1", "mlp.view_width=8", "mlp.max_deg=4"]
 SMALL_GRID = ["grid.levels=3", "grid.min_resolution=4", "grid.max_resolution=16", "grid.features=4"]
 SMALL_GRID += ["grid.decoder_width=16", "grid.view_width=8", "grid.coarse_to_fine_steps=20"]
 # The batched lookup (the CPU's default) on every backend, so that the batch path is the

@@ -8,13 +8,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import TINY_OVERRIDES
+from helpers import TINY_SHARED_OVERRIDES
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, GridField, HashEncoding, Skipping, TriPlaneEncoding, render_rays
 from mixnerf_eqx._config import replace_setting
-from mixnerf_eqx._field.grid import density_activation
-from mixnerf_eqx._loss import LossWeights
+from mixnerf_eqx._nn.field.grid import density_activation
+from mixnerf_eqx._train.loss import LossWeights
 from mixnerf_eqx.metrics import psnr
 
 GRID_OVERRIDES = [
@@ -282,14 +282,16 @@ def test_grid_config_is_checked(tmp_path):
 
 @pytest.fixture
 def tiny_grid_config(tmp_path):
-    config = mx.load_config("builtin_grid", [*TINY_OVERRIDES, *GRID_OVERRIDES])
+    config = mx.load_config("builtin_grid", [*TINY_SHARED_OVERRIDES, *GRID_OVERRIDES])
     return dataclasses.replace(config, train=dataclasses.replace(config.train, run_dir=str(tmp_path / "run")))
 
 
 def test_short_grid_run_learns_and_renders_with_skipping(tiny_grid_config, tiny_scene):
     # The threshold's calibration (most of a final report's time here) is tested with the MLP
     # field in test_occupancy.py; this test is about the grid field behind the occupancy grid.
-    config = replace_setting(tiny_grid_config, "occupancy", enabled=True, resolution=32, calibrate=False)
+    config = replace_setting(
+        tiny_grid_config, "occupancy", enabled=True, resolution=32, choose_threshold=False
+    )
     result = mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False, log_every=10)
     losses = [entry["mse_fine"] for entry in result.history]
     assert np.mean(losses[-3:]) < 0.5 * np.mean(losses[:2])
@@ -298,7 +300,7 @@ def test_short_grid_run_learns_and_renders_with_skipping(tiny_grid_config, tiny_
     assert result.metrics["test"]["psnr"] > constant + 3.0, (result.metrics["test"], constant)
     # The trained field behind the occupancy grid: a render that skips nothing equals the dense
     # one, and the restored run is the trained one.
-    run = mx.restore_run(result.run_dir)
+    run = mx.runs.restore_run(result.run_dir)
     assert isinstance(run.model.field, GridField)
     rays = mx.camera_rays(tiny_scene.test.camtoworlds[:1], tiny_scene.test.focal * 12 / 32, 12, 12, 2.0, 6.0)
     rays = rays.reshape(-1)

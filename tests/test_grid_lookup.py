@@ -7,11 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import TINY_OVERRIDES
+from helpers import TINY_SHARED_OVERRIDES
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import GridField, HashEncoding, TriPlaneEncoding
-from mixnerf_eqx._field._lookup import resolve_lookup, weighted_rows
+from mixnerf_eqx._nn.field._lookup import resolve_lookup, weighted_rows
 
 
 def _float64(tree):
@@ -202,7 +202,7 @@ def test_lookup_choice_per_backend_and_bad_names():
 
 def test_the_model_uses_the_fields_batched_evaluation(tiny_scene):
     overrides = [
-        *TINY_OVERRIDES,
+        *TINY_SHARED_OVERRIDES,
         "model.field=grid",
         "grid.levels=2",
         "grid.min_resolution=8",

@@ -8,12 +8,12 @@ import jax
 import numpy as np
 import pytest
 
+import mixnerf_eqx as mx
 from mixnerf_eqx import (
     TrainingDiverged,
     draw_batch,
     fit,
     init_train_state,
-    latest_checkpoint,
     make_train_step,
     training_rays,
 )
@@ -72,11 +72,11 @@ def test_diverging_run_stops_and_keeps_the_last_good_checkpoint(tiny_config, tin
     train = dataclasses.replace(tiny_config.train, max_steps=30, checkpoint_every=4, max_nonfinite_steps=5)
     config = dataclasses.replace(tiny_config, train=train)
     fit(config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=4)
-    good = latest_checkpoint(config.train.run_dir)
+    good = mx.runs.latest_checkpoint(config.train.run_dir)
     digest = _tree_digest(good)
     with pytest.raises(TrainingDiverged, match=r"step 9: 5 consecutive steps.*step_00000004"):
         fit(config, dataset=_poisoned(tiny_scene, range(4)), progress=False, write_renders=False)
-    assert latest_checkpoint(config.train.run_dir) == good
+    assert mx.runs.latest_checkpoint(config.train.run_dir) == good
     assert _tree_digest(good) == digest
 
 

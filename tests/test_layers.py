@@ -7,12 +7,13 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "mixnerf_eqx"
-MODULE = re.compile(r"(_?[a-z_]+\.py|_?[a-z_]+/)")
+UNIT = re.compile(r"(_?[a-z_]+/)*_?[a-z_]+(\.py|/)")
 
 
 def documented_layers() -> list[list[str]]:
     """The layers of the architecture's diagram, top first: its first code block, the names
-    at the start of each line (several, comma-separated, on one line), `|` lines between."""
+    at the start of each line (several, comma-separated, on one line), `|` lines between. A
+    name is a path inside the package: a module (`_nn/rays.py`) or a folder (`data/`)."""
     text = (REPO / "docs" / "architecture.md").read_text()
     block = text.split("```")[1]
     layers: list[list[str]] = [[]]
@@ -25,60 +26,78 @@ def documented_layers() -> list[list[str]]:
     return layers
 
 
-def unit(path: Path) -> str:
-    """The listed unit a file belongs to: `name.py` for a top-level module, `name/` for a
-    subpackage."""
-    relative = path.relative_to(PACKAGE)
-    return relative.parts[0] + "/" if len(relative.parts) > 1 else relative.name
+def package_files() -> list[Path]:
+    return sorted(p for p in PACKAGE.rglob("*.py") if "configs" not in p.relative_to(PACKAGE).parts)
 
 
-def imported_units(path: Path) -> set[str]:
-    """The package's units that `path` imports (relative or absolute imports)."""
-    found: set[str] = set()
+def is_group_marker(path: Path) -> bool:
+    """A group folder's `__init__.py` (`_nn/`, `_train/`, ...): a docstring and nothing else, so
+    importing a group imports none of its modules."""
+    body = ast.parse(path.read_text()).body
+    return path.name == "__init__.py" and len(body) == 1 and isinstance(body[0], ast.Expr)
+
+
+def unit(path: Path, units: list[str]) -> str | None:
+    """The listed unit a file belongs to: itself, or the deepest listed folder holding it."""
+    relative = path.relative_to(PACKAGE).as_posix()
+    held = [name for name in units if name == relative or (name.endswith("/") and relative.startswith(name))]
+    return max(held, key=len) if held else None
+
+
+def module_file(parts: list[str]) -> Path | None:
+    """The file of the package's module `mixnerf_eqx.<parts>` (a module or a package)."""
+    path = PACKAGE.joinpath(*parts)
+    if path.with_suffix(".py").is_file():
+        return path.with_suffix(".py")
+    return path / "__init__.py" if (path / "__init__.py").is_file() else None
+
+
+def imported_files(path: Path) -> set[Path]:
+    """The package's files that `path` imports (relative or absolute imports)."""
+    found: set[Path | None] = set()
+    here = list(path.parent.relative_to(PACKAGE).parts)
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom) and node.level > 0:
-            base = path.parent
-            for _ in range(node.level - 1):
-                base = base.parent
-            target = base.joinpath(*node.module.split(".")) if node.module else base
-            names = [target / alias.name for alias in node.names] if target == PACKAGE else [target]
-        elif isinstance(node, ast.ImportFrom) and node.module == "mixnerf_eqx":
-            names = [PACKAGE / alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mixnerf_eqx."):
-            names = [PACKAGE / node.module.split(".")[1]]
+            base = here[: len(here) - (node.level - 1)] + (node.module.split(".") if node.module else [])
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "mixnerf_eqx":
+            base = node.module.split(".")[1:]
         elif isinstance(node, ast.Import):
-            names = [PACKAGE / a.name.split(".")[1] for a in node.names if a.name.startswith("mixnerf_eqx.")]
+            found |= {
+                module_file(a.name.split(".")[1:]) for a in node.names if a.name.startswith("mixnerf_eqx.")
+            }
+            continue
         else:
             continue
-        for name in names:
-            resolved = name.resolve()
-            if resolved == PACKAGE.resolve() or PACKAGE.resolve() not in resolved.parents:
-                continue
-            top = resolved.relative_to(PACKAGE.resolve()).parts[0]
-            found.add(top + "/" if (PACKAGE / top).is_dir() else top.removesuffix(".py") + ".py")
-    return found - {unit(path)}
+        for alias in node.names:
+            found.add(module_file(base + [alias.name]) or module_file(base))
+    return {file for file in found if file is not None} - {path}
 
 
-def package_units() -> set[str]:
-    return {unit(path) for path in PACKAGE.rglob("*.py") if "configs" not in path.relative_to(PACKAGE).parts}
+def imported_units(path: Path, units: list[str]) -> set[str]:
+    return {unit(file, units) for file in imported_files(path)} - {unit(path, units), None}
 
 
 def test_every_module_is_in_one_documented_layer():
     layers = documented_layers()
     listed = [name for layer in layers for name in layer]
-    assert len(layers) >= 6 and all(MODULE.fullmatch(name) for name in listed), layers
+    assert len(layers) >= 6 and all(UNIT.fullmatch(name) for name in listed), layers
     assert len(listed) == len(set(listed)), "a module is listed twice"
-    assert set(listed) == package_units(), set(listed) ^ package_units()
+    unlisted = [p for p in package_files() if unit(p, listed) is None and not is_group_marker(p)]
+    assert not unlisted, f"not in docs/architecture.md: {unlisted}"
+    empty = [name for name in listed if not any(unit(p, listed) == name for p in package_files())]
+    assert not empty, f"listed in docs/architecture.md but not in the package: {empty}"
 
 
 def test_no_module_imports_a_lower_layer():
-    layer_of = {name: index for index, layer in enumerate(documented_layers()) for name in layer}
+    layers = documented_layers()
+    listed = [name for layer in layers for name in layer]
+    layer_of = {name: index for index, layer in enumerate(layers) for name in layer}
     wrong = []
-    for path in sorted(PACKAGE.rglob("*.py")):
-        if "configs" in path.relative_to(PACKAGE).parts:
+    for path in package_files():
+        here = unit(path, listed)
+        if here is None:
             continue
-        here = unit(path)
-        for imported in sorted(imported_units(path)):
+        for imported in sorted(imported_units(path, listed)):
             if layer_of[imported] > layer_of[here]:
                 wrong.append(
                     f"{path.relative_to(REPO)} imports {imported} "
@@ -87,12 +106,18 @@ def test_no_module_imports_a_lower_layer():
     assert not wrong, "\n".join(wrong)
 
 
-def test_the_check_sees_a_lower_import(tmp_path):
-    """The import reader finds relative and absolute imports of the package's modules."""
-    sample = PACKAGE / "_field" / "base.py"
-    assert imported_units(sample) == {"_custom_types.py"}
-    assert {"_train_state.py", "_sharding.py", "_checkpoint.py"} <= imported_units(PACKAGE / "_train.py")
-    assert "_train.py" in imported_units(PACKAGE / "__init__.py")
+def test_the_check_sees_a_lower_import():
+    """The import reader finds relative and absolute imports of the package's modules, down to
+    the module inside a group, and a group's marker imports nothing."""
+    listed = [name for layer in documented_layers() for name in layer]
+    assert imported_units(PACKAGE / "_nn" / "field" / "base.py", listed) == {"_custom_types.py"}
+    loop = imported_units(PACKAGE / "_train" / "loop.py", listed)
+    assert {"_train/state.py", "_train/sharding.py", "_train/checkpoint.py", "_util/json_io.py"} <= loop
+    assert {"_train/loop.py", "data/", "_util/allocator.py", "runs.py"} <= imported_units(
+        PACKAGE / "__init__.py", listed
+    )
+    assert is_group_marker(PACKAGE / "_nn" / "__init__.py")
+    assert not is_group_marker(PACKAGE / "_nn" / "field" / "__init__.py")
 
 
 def test_benchmarks_use_the_public_api():

@@ -18,11 +18,11 @@ from helpers import as_f32, as_f64
 
 import mixnerf_eqx as mx
 from mixnerf_eqx._config import LossConfig
-from mixnerf_eqx._field import FieldOutputs
-from mixnerf_eqx._loss import LossWeights, loss_terms, opacity_entropy
-from mixnerf_eqx._model import RenderOutputs
-from mixnerf_eqx._render import distortion
-from mixnerf_eqx._renderer import LevelOutputs
+from mixnerf_eqx._nn.compositing import distortion
+from mixnerf_eqx._nn.field import FieldOutputs
+from mixnerf_eqx._nn.model import RenderOutputs
+from mixnerf_eqx._nn.renderer import LevelOutputs
+from mixnerf_eqx._train.loss import LossWeights, loss_terms, opacity_entropy
 
 
 def _ref_weights(density, t_edges, step_scale):
@@ -128,7 +128,7 @@ def _rays(directions):
 
 @pytest.fixture(scope="module")
 def mixnerf_model():
-    config = mx.load_config("builtin", ["model.width=16", "model.depth=2", "model.skip_layer=1"])
+    config = mx.load_config("builtin", ["mlp.width=16", "mlp.depth=2", "mlp.skip_layer=1"])
     return mx.build_model(config, key=jax.random.key(0))
 
 

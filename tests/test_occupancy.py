@@ -15,14 +15,14 @@ from jaxtyping import Array, Float
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, Skipping, fit, render_rays
-from mixnerf_eqx._calibrate import psnr_drop_bound
-from mixnerf_eqx._occupancy import (
+from mixnerf_eqx._inference.occupancy import (
     empty_grid,
     frustum_box,
     refresh_occupancy,
     update_occupancy,
 )
-from mixnerf_eqx._skipping import _render_level, _sample_coarse
+from mixnerf_eqx._inference.skipping import _render_level, _sample_coarse
+from mixnerf_eqx._inference.threshold import psnr_drop_bound
 from mixnerf_eqx.metrics import psnr
 
 
@@ -284,7 +284,7 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     # Skipping may move the held-out PSNR only by what the skipped samples could add.
     assert abs(b.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
     # The threshold was calibrated on training pixels and within its tolerance there.
-    calibration = render["calibration"]
+    calibration = render["threshold_choice"]
     assert calibration["trials"] and calibration["tolerance_db"] == 0.1
     assert render["density_threshold"] == calibration["threshold"]
     assert calibration["within_tolerance"] == (calibration["bound_db"] <= 0.1)
@@ -298,9 +298,9 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
         ("occupancy.update_fraction=0", "occupancy.update_fraction"),
         ("occupancy.stop_transmittance=1", "occupancy.stop_transmittance"),
         ("occupancy.grid_size=3", "unknown key 'grid_size'"),
-        ("occupancy.density_threshold=0", "occupancy.calibrate needs"),
-        ("occupancy.calibrate_rays=0", "occupancy.calibrate_rays"),
-        ("occupancy.calibrate_tolerance_db=-1", "occupancy.calibrate_tolerance_db"),
+        ("occupancy.density_threshold=0", "occupancy.choose_threshold needs"),
+        ("occupancy.threshold_rays=0", "occupancy.threshold_rays"),
+        ("occupancy.threshold_tolerance_db=-1", "occupancy.threshold_tolerance_db"),
     ],
 )
 def test_bad_occupancy_settings_are_refused(override, message):
@@ -354,7 +354,7 @@ def _calibrate_foggy_sphere(tolerance_db):
     grid = empty_grid((-1.5,) * 3, (1.5,) * 3, resolution=32, threshold=1e-3, outside_occupied=False)
     grid = refresh_occupancy(grid, foggy, key=jax.random.key(0))
     skipping = Skipping(grid, 1e-4, 4)
-    chosen, choice = mx.calibrate_threshold(
+    chosen, choice = mx.choose_threshold(
         model, grid, skipping, rays, target, tolerance_db=tolerance_db, doublings=16, chunk=576
     )
     dense = render_rays(model, rays, 576).rgb
@@ -387,7 +387,7 @@ def test_calibration_skips_the_fog_but_not_the_sphere_for_a_loose_tolerance():
 
 
 def test_calibration_rays_are_distinct_training_pixels(tiny_scene):
-    rays, colours = mx.calibration_rays(tiny_scene, 300, key=jax.random.key(3))
+    rays, colours = mx.threshold_rays(tiny_scene, 300, key=jax.random.key(3))
     views = tiny_scene.train
     assert rays.batch_shape == (300,) and colours.shape == (300, 3)
     all_rays = mx.data.rays_for_views(views, tiny_scene.near, tiny_scene.far).reshape(-1)
@@ -397,4 +397,4 @@ def test_calibration_rays_are_distinct_training_pixels(tiny_scene):
     assert len(set(index)) == 300
     np.testing.assert_array_equal(colours, np.asarray(views.images, np.float32).reshape(-1, 3)[index])
     with pytest.raises(ValueError, match="num_rays"):
-        mx.calibration_rays(tiny_scene, 0, key=jax.random.key(3))
+        mx.threshold_rays(tiny_scene, 0, key=jax.random.key(3))

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mixnerf_eqx._field.mip_mlp import MipNeRFField
-from mixnerf_eqx._train import fit
+from mixnerf_eqx._nn.field.mip_mlp import MipNeRFField
+from mixnerf_eqx._train.loop import fit
 
 # One bfloat16 product of a 32-wide layer rounds its inputs and kernel to 8 bits of mantissa
 # (relative 2^-9 each) and accumulates in float32: ~sqrt(32) * 2^-8 of the typical |term|.
@@ -70,7 +70,7 @@ def test_bfloat16_training_matches_float32_psnr(tiny_config, tiny_scene):
     for matmul_dtype in ("float32", "bfloat16"):
         config = dataclasses.replace(
             tiny_config,
-            model=dataclasses.replace(tiny_config.model, matmul_dtype=matmul_dtype),
+            mlp=dataclasses.replace(tiny_config.mlp, matmul_dtype=matmul_dtype),
             train=dataclasses.replace(
                 tiny_config.train, run_dir=f"{tiny_config.train.run_dir}_{matmul_dtype}"
             ),

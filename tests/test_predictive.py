@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._predictive import mixing_coefficients
+from mixnerf_eqx._predictive.distribution import mixing_coefficients
 from mixnerf_eqx.data import rays_for_views
 
 MASSES = (0.5, 0.8, 0.9, 0.95)
@@ -335,8 +335,8 @@ def test_sparsification_against_a_direct_loop():
 
 
 def test_predictive_pass_of_a_model_compiles_once(tiny_config, tiny_scene, monkeypatch):
-    from mixnerf_eqx import _uncertainty
-    from mixnerf_eqx._model import build_model
+    from mixnerf_eqx._nn.model import build_model
+    from mixnerf_eqx._predictive import uncertainty as _uncertainty
 
     model = build_model(tiny_config, key=jax.random.key(0))
     view = tiny_scene.test.select([0])
@@ -378,7 +378,7 @@ def test_predictive_pass_of_a_model_compiles_once(tiny_config, tiny_scene, monke
 def test_eval_writes_uncertainty_maps_and_calibration(tiny_config, tiny_scene, tmp_path):
     import json
 
-    from mixnerf_eqx.eval import main as eval_main
+    from mixnerf_eqx.cli.eval import main as eval_main
 
     # A run folder holding an untrained state: the command's plumbing, not the model, is tested.
     run_dir = tmp_path / "run"
@@ -387,7 +387,9 @@ def test_eval_writes_uncertainty_maps_and_calibration(tiny_config, tiny_scene, t
     )
     run_dir.mkdir()
     (run_dir / "config.json").write_text(json.dumps(mx.config_to_dict(config)))
-    mx.save_checkpoint(run_dir, mx.init_train_state(config, tiny_scene), config=mx.config_to_dict(config))
+    mx.runs.save_checkpoint(
+        run_dir, mx.init_train_state(config, tiny_scene), config=mx.config_to_dict(config)
+    )
     out = tmp_path / "eval"
     arguments = [str(run_dir), "--max-views", "1", "--no-lpips", "--no-progress", "--out", str(out)]
     assert eval_main([*arguments, "--uncertainty", "--temperature", "1.5"]) == 0

@@ -19,8 +19,8 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._predictive import ColourMixture, TerminationDistribution
-from mixnerf_eqx._render import termination_cdf
+from mixnerf_eqx._nn.compositing import termination_cdf
+from mixnerf_eqx._predictive.distribution import ColourMixture, TerminationDistribution
 
 SETTINGS = settings(
     max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]

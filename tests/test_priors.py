@@ -13,11 +13,11 @@ import pytest
 from helpers import TINY_OVERRIDES
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._camera_path import orbit_centre
-from mixnerf_eqx._loss import depth_smoothness
-from mixnerf_eqx._model import RenderOutputs
-from mixnerf_eqx._renderer import LevelOutputs
-from mixnerf_eqx._train_state import (
+from mixnerf_eqx._inference.camera_path import orbit_centre
+from mixnerf_eqx._nn.model import RenderOutputs
+from mixnerf_eqx._nn.renderer import LevelOutputs
+from mixnerf_eqx._train.loss import depth_smoothness
+from mixnerf_eqx._train.state import (
     draw_batch,
     init_train_state,
     make_train_step,

@@ -3,7 +3,7 @@
 import numpy as np
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._rays import intrinsic_matrix
+from mixnerf_eqx._nn.rays import intrinsic_matrix
 
 
 def _rotation(seed):

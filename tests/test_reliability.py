@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-import mixnerf_eqx._train as train_module
+import mixnerf_eqx._train.loop as train_module
 from mixnerf_eqx import ConfigError
-from mixnerf_eqx._progress import Progress
+from mixnerf_eqx._util.progress import Progress
 
 
 def _with(config, section, **changes):
@@ -39,7 +39,7 @@ def _assert_same_model(a, b):
 def _short(tiny_config, run_dir):
     config = _with(tiny_config, "train", max_steps=10, checkpoint_every=4, eval_every=5, run_dir=str(run_dir))
     # A small grid, updated every other step, so that interrupts can land in its update too.
-    return _with(config, "occupancy", enabled=True, resolution=8, update_every=2, calibrate=False)
+    return _with(config, "occupancy", enabled=True, resolution=8, update_every=2, choose_threshold=False)
 
 
 def fit_quietly(config, dataset, **kwargs):
@@ -56,7 +56,7 @@ def _interrupting(function, calls: dict):
     return interrupted
 
 
-# Where a Ctrl-C lands (a name in `mixnerf_eqx._train` called there) and the step whose
+# Where a Ctrl-C lands (a name in `mixnerf_eqx._train.loop` called there) and the step whose
 # checkpoint it leaves, one after the other in one run: while the host waits for a step, in a
 # log entry, in the grid update, inside the periodic evaluation's render, and inside a
 # checkpoint write.
@@ -86,7 +86,7 @@ def test_a_ctrl_c_anywhere_in_the_loop_resumes_to_the_uninterrupted_run(
         with pytest.raises(KeyboardInterrupt):
             fit_quietly(config, tiny_scene)
         monkeypatch.setattr(train_module, point, original)
-        saved = mx.read_checkpoint_meta(mx.latest_checkpoint(config.train.run_dir))["step"]
+        saved = mx.runs.read_checkpoint_meta(mx.runs.latest_checkpoint(config.train.run_dir))["step"]
         assert saved == expected, point
     resumed = fit_quietly(config, tiny_scene)
     _assert_same_model(resumed.state, straight.state)
@@ -109,8 +109,8 @@ def test_a_ctrl_c_in_the_set_up_before_the_loop_stops_the_run(tiny_scene, tmp_pa
     the run at the loop's first safe point."""
     from helpers import TINY_OVERRIDES
 
-    from mixnerf_eqx import _train
-    from mixnerf_eqx import train as train_cli
+    from mixnerf_eqx._train import loop as _train
+    from mixnerf_eqx.cli import train as train_cli
 
     loaded = []
 
@@ -135,7 +135,7 @@ import gc, signal, time
 # script) passes SIGINT on ignored, and then Python installs no handler of its own.
 signal.signal(signal.SIGINT, signal.default_int_handler)
 import mixnerf_eqx  # installs the hook before JAX is imported
-from mixnerf_eqx._interrupt import deferred_interrupts, raise_if_interrupted
+from mixnerf_eqx._util.interrupt import deferred_interrupts, raise_if_interrupted
 
 def ctrl_c_here(phase, info):
     # A Ctrl-C that Python's handler raises inside a gc callback (as in JAX's): Python drops it.
@@ -187,7 +187,9 @@ def test_a_ctrl_c_that_python_drops_in_a_gc_callback_is_raised_again():
 def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatch, capsys):
     config = _with(tiny_config, "train", max_steps=2)
     fit_quietly(config, tiny_scene)
-    original = mx._evaluate._render_dense
+    from mixnerf_eqx._inference import evaluation
+
+    original = evaluation._render_dense
     calls = {"count": 0}
 
     def interrupted(*args):
@@ -196,8 +198,8 @@ def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatc
             signal.raise_signal(signal.SIGINT)
         return original(*args)
 
-    monkeypatch.setattr(mx._evaluate, "_render_dense", interrupted)
-    from mixnerf_eqx.eval import main as eval_main
+    monkeypatch.setattr(evaluation, "_render_dense", interrupted)
+    from mixnerf_eqx.cli.eval import main as eval_main
 
     code = eval_main([config.train.run_dir, "--no-progress", "--chunk", "256"])
     assert code == 130
@@ -243,9 +245,9 @@ def _checkpoints(config, dataset, steps):
     state = mx.init_train_state(config, dataset)
     for step in steps:
         labelled = eqx.tree_at(lambda s: s.step, state, jnp.asarray(step, jnp.int32))
-        mx.save_checkpoint(config.train.run_dir, labelled, config=mx.config_to_dict(config))
+        mx.runs.save_checkpoint(config.train.run_dir, labelled, config=mx.config_to_dict(config))
     (Path(config.train.run_dir) / "config.json").write_text(json.dumps(mx.config_to_dict(config)))
-    return [mx.latest_checkpoint(config.train.run_dir).parent / f"step_{step:08d}" for step in steps]
+    return [mx.runs.latest_checkpoint(config.train.run_dir).parent / f"step_{step:08d}" for step in steps]
 
 
 def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_one(tiny_config, tiny_scene):
@@ -255,7 +257,7 @@ def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_one(tiny_config,
     for how in ("empty", "truncated"):
         _corrupt(newest / "state.eqx", how)
         with pytest.warns(RuntimeWarning, match=f"damaged checkpoint.*{newest.name}"):
-            run = mx.restore_run(config.train.run_dir, dataset=tiny_scene)
+            run = mx.runs.restore_run(config.train.run_dir, dataset=tiny_scene)
         assert run.step == 2, how
         (newest / "state.eqx").write_bytes(intact)
     _corrupt(newest / "state.eqx", "truncated")
@@ -269,19 +271,19 @@ def test_a_garbage_meta_file_is_named(tiny_config, tiny_scene):
     (checkpoint,) = _checkpoints(tiny_config, tiny_scene, [4])
     (checkpoint / "meta.json").write_text("{not json")
     with pytest.raises(mx.CheckpointError, match="meta.json"):
-        mx.read_checkpoint_meta(checkpoint)
+        mx.runs.read_checkpoint_meta(checkpoint)
     with (
         pytest.warns(RuntimeWarning, match="meta.json"),
         pytest.raises(mx.CheckpointError, match="can be read"),
     ):
-        mx.restore_run(tiny_config.train.run_dir, dataset=tiny_scene)
+        mx.runs.restore_run(tiny_config.train.run_dir, dataset=tiny_scene)
 
 
 def test_a_checkpoint_of_another_model_is_one_clear_error(tiny_config, tiny_scene):
     (checkpoint,) = _checkpoints(tiny_config, tiny_scene, [2])
-    like = mx.init_train_state(_with(tiny_config, "model", width=48), tiny_scene)
+    like = mx.init_train_state(_with(tiny_config, "mlp", width=48), tiny_scene)
     with pytest.raises(mx.CheckpointError, match="another model or config"):
-        mx.load_checkpoint(checkpoint, like)
+        mx.runs.load_checkpoint(checkpoint, like)
 
 
 def test_a_full_disk_leaves_no_staging_folder_and_a_clear_message(tiny_config, tiny_scene, monkeypatch):
@@ -293,7 +295,7 @@ def test_a_full_disk_leaves_no_staging_folder_and_a_clear_message(tiny_config, t
 
     monkeypatch.setattr(eqx, "tree_serialise_leaves", full)
     with pytest.raises(mx.CheckpointError, match="No space left on device.*previous checkpoint is intact"):
-        mx.save_checkpoint(config.train.run_dir, state, config={})
+        mx.runs.save_checkpoint(config.train.run_dir, state, config={})
     assert list((Path(config.train.run_dir) / "checkpoints").iterdir()) == []
 
 
@@ -342,7 +344,7 @@ def test_an_unwritable_run_dir_is_refused(tiny_config, tmp_path):
 
 
 def test_paths_with_quotes_and_spaces_are_kept_as_given(tiny_scene, tmp_path, monkeypatch):
-    from mixnerf_eqx import train as train_cli
+    from mixnerf_eqx.cli import train as train_cli
 
     seen = {}
 
@@ -358,8 +360,8 @@ def test_paths_with_quotes_and_spaces_are_kept_as_given(tiny_scene, tmp_path, mo
 
 
 def test_options_may_follow_overrides():
-    from mixnerf_eqx.eval import parse_args as eval_args
-    from mixnerf_eqx.train import parse_args
+    from mixnerf_eqx.cli.eval import parse_args as eval_args
+    from mixnerf_eqx.cli.train import parse_args
 
     args = parse_args(["train.max_steps=3", "--no-progress", "train.eval_every=0", "--run-dir", "x"])
     assert args.no_progress and args.run_dir == "x"
@@ -372,7 +374,7 @@ def test_options_may_follow_overrides():
     [(["--chunk", "0"], "--chunk"), (["--chunk", "-5"], "--chunk"), (["--max-views", "-1"], "--max-views")],
 )
 def test_eval_refuses_meaningless_numbers(arguments, message, tmp_path, capsys):
-    from mixnerf_eqx.eval import main as eval_main
+    from mixnerf_eqx.cli.eval import main as eval_main
 
     assert eval_main([str(tmp_path), "--no-progress", *arguments]) == 2
     error = capsys.readouterr().err
@@ -391,11 +393,11 @@ def test_a_huge_chunk_is_bounded_by_the_rays(tiny_config, tiny_scene):
     "override, key",
     [
         ("train.eval_every=-1", "train.eval_every"),
-        ("model.skip_layer=99", "model.skip_layer"),
+        ("mlp.skip_layer=99", "mlp.skip_layer"),
         ("optim.warmup_steps=-1", "optim.warmup_steps"),
         ("loss.lambda_depth=-0.5", "loss.lambda_depth"),
         ("train.num_eval_views=-1", "train.num_eval_views"),
-        ("model.min_deg=20", "model.min_deg"),
+        ("mlp.min_deg=20", "mlp.min_deg"),
         ('train.run_dir=""', "train.run_dir"),
         ("train.max_steps=4000000000", "train.max_steps"),
         ("data.near=6.0", "data.near"),
@@ -470,7 +472,7 @@ def test_the_readme_example_does_not_share_the_quick_start_run_dir():
 def test_interrupts_outside_the_main_thread_are_left_alone():
     import threading
 
-    from mixnerf_eqx._interrupt import deferred_interrupts
+    from mixnerf_eqx._util.interrupt import deferred_interrupts
 
     before = signal.getsignal(signal.SIGINT)
     result = {}

@@ -13,10 +13,10 @@ from helpers import TINY_OVERRIDES
 from PIL import Image
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import render
-from mixnerf_eqx._camera_path import SPIRAL_FOCUS_DEPTH, camera_path, orbit_path, spiral_path
-from mixnerf_eqx._images import to_uint8
-from mixnerf_eqx._video import path_frames, render_video
+from mixnerf_eqx._inference.camera_path import SPIRAL_FOCUS_DEPTH, camera_path, orbit_path, spiral_path
+from mixnerf_eqx._inference.video import path_frames, render_video
+from mixnerf_eqx._util.images import to_uint8
+from mixnerf_eqx.cli import render
 from mixnerf_eqx.data import procedural
 
 
@@ -106,7 +106,11 @@ def test_a_path_for_the_other_kind_of_scene_is_drawn_with_a_warning(tiny_scene):
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory):
     # A small grid for the skipping render, its threshold from the config (no calibration).
-    overrides = ["occupancy.resolution=16", "occupancy.calibrate=false", "occupancy.density_threshold=0.5"]
+    overrides = [
+        "occupancy.resolution=16",
+        "occupancy.choose_threshold=false",
+        "occupancy.density_threshold=0.5",
+    ]
     config = mx.load_config("builtin", [*TINY_OVERRIDES, *overrides])
     run_dir = tmp_path_factory.mktemp("render") / "run"
     config = dataclasses.replace(config, train=dataclasses.replace(config.train, run_dir=str(run_dir)))
@@ -142,7 +146,7 @@ def test_render_writes_an_orbit_video_with_its_frames(trained_run, capsys):
     # The PNG frames are the renders, exactly; the video holds them up to its compression.
     pngs = sorted((trained_run / "video" / "auto_frames").glob("frame_*.png"))
     assert len(pngs) == 6
-    run = mx.restore_run(trained_run)
+    run = mx.runs.restore_run(trained_run)
     _, rays_of = path_frames(run.dataset, "auto", 6)
     colour = to_uint8(mx.render_rays(run.model, rays_of(0)).rgb[0])
     first = np.asarray(Image.open(pngs[0]))
@@ -164,7 +168,7 @@ def test_render_of_the_test_views_with_skipping(trained_run):
 
 
 def test_a_spread_adds_a_third_panel(trained_run, tmp_path):
-    run = mx.restore_run(trained_run)
+    run = mx.runs.restore_run(trained_run)
     video = render_video(
         run.model,
         run.dataset,
@@ -176,7 +180,7 @@ def test_a_spread_adds_a_third_panel(trained_run, tmp_path):
 
 
 def test_ctrl_c_keeps_the_frames_so_far_as_a_partial_video(trained_run, tmp_path):
-    run = mx.restore_run(trained_run)
+    run = mx.runs.restore_run(trained_run)
 
     def interrupt_after_two(done, total):
         if done == 2:
@@ -189,7 +193,7 @@ def test_ctrl_c_keeps_the_frames_so_far_as_a_partial_video(trained_run, tmp_path
 
 
 def test_uncertainty_panel_from_the_predictive_distribution(trained_run):
-    pytest.importorskip("mixnerf_eqx._uncertainty")
+    pytest.importorskip("mixnerf_eqx._predictive.uncertainty")
     out = trained_run / "video" / "spread.mp4"
     assert (
         render.main([str(trained_run), "--frames", "2", "--uncertainty", "--out", str(out), "--no-progress"])

@@ -1,4 +1,4 @@
-"""One writer per run folder (`mixnerf_eqx._lock`): real second processes, started in the
+"""One writer per run folder (`mixnerf_eqx._util.lock`): real second processes, started in the
 middle of a run and at the same time as the first."""
 
 import json
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from helpers import TINY_OVERRIDES
 
-from mixnerf_eqx._lock import LOCK_NAME, FolderBusyError, hold_folder
+from mixnerf_eqx._util.lock import LOCK_NAME, FolderBusyError, hold_folder
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="no flock on Windows")
 
@@ -106,7 +106,7 @@ def test_two_trains_started_together_one_runs_and_one_is_refused(tmp_path):
 
 
 def test_a_sweep_folder_in_use_is_refused_before_any_run(tmp_path, capsys):
-    from mixnerf_eqx.sweep import main as sweep_main
+    from mixnerf_eqx.cli.sweep import main as sweep_main
 
     out = tmp_path / "sweep"
     out.mkdir()

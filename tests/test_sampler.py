@@ -14,8 +14,8 @@ from helpers import (
 )
 
 from mixnerf_eqx import HierarchicalSampler, RaySamples, StratifiedSampler
-from mixnerf_eqx._sampler import sample_piecewise_constant
-from mixnerf_eqx._sampler.hierarchical import blur_weights
+from mixnerf_eqx._nn.sampler import sample_piecewise_constant
+from mixnerf_eqx._nn.sampler.hierarchical import blur_weights
 
 NEAR, FAR = 2.0, 6.0
 

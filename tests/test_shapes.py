@@ -181,11 +181,12 @@ def test_one_switch_turns_the_checks_off_and_on():
 
 def test_command_lines_take_no_typecheck():
     import mixnerf_eqx as mx
-    from mixnerf_eqx.train import parse_args
+    from mixnerf_eqx._util.typecheck import typecheck_argument
+    from mixnerf_eqx.cli.train import parse_args
 
-    with mx._typecheck.typecheck_argument(parse_args(["--no-typecheck"])):
+    with typecheck_argument(parse_args(["--no-typecheck"])):
         assert not mx.typecheck_enabled()
     # The switch is restored after the command, so calling `main` from Python changes nothing.
     assert mx.typecheck_enabled()
-    with mx._typecheck.typecheck_argument(parse_args([])):
+    with typecheck_argument(parse_args([])):
         assert mx.typecheck_enabled()

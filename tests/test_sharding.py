@@ -1,4 +1,4 @@
-"""Data-parallel training (`mixnerf_eqx._sharding`) against the single-device step.
+"""Data-parallel training (`mixnerf_eqx._train.sharding`) against the single-device step.
 
 JAX fixes its device count when it starts, so the checks with four devices run in a fresh
 interpreter with `--xla_force_host_platform_device_count=4` (four CPU devices).
@@ -16,7 +16,7 @@ import pytest
 from helpers import TINY_OVERRIDES
 
 from mixnerf_eqx import ConfigError
-from mixnerf_eqx._sharding import data_parallel_mesh
+from mixnerf_eqx._train.sharding import data_parallel_mesh
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -28,7 +28,7 @@ _FOUR_DEVICES = textwrap.dedent(
     import jax
     import numpy as np
     import mixnerf_eqx as mx
-    from mixnerf_eqx._sharding import DataParallel, data_parallel_mesh
+    from mixnerf_eqx._train.sharding import DataParallel, data_parallel_mesh
     from mixnerf_eqx.data import load_dataset
 
     overrides, run_root = json.loads(sys.argv[1]), sys.argv[2]

@@ -29,9 +29,13 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from mixnerf_eqx import LaplaceMixture, blend_weights
-from mixnerf_eqx._encoding import conical_frustum_moments, integrated_positional_encoding, positional_encoding
-from mixnerf_eqx._render import accumulation, composite_rgb, expected_depth
-from mixnerf_eqx._sampler.hierarchical import blur_weights, sample_piecewise_constant
+from mixnerf_eqx._nn.compositing import accumulation, composite_rgb, expected_depth
+from mixnerf_eqx._nn.encoding import (
+    conical_frustum_moments,
+    integrated_positional_encoding,
+    positional_encoding,
+)
+from mixnerf_eqx._nn.sampler.hierarchical import blur_weights, sample_piecewise_constant
 
 SETTINGS = settings(max_examples=40, deadline=None)
 DTYPES = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}

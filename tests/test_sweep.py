@@ -7,8 +7,8 @@ import pytest
 from helpers import TINY_OVERRIDES
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import sweep
-from mixnerf_eqx._sweep import aggregate, format_markdown, plan_sweep, published_numbers
+from mixnerf_eqx._train.sweep import aggregate, format_markdown, plan_sweep, published_numbers
+from mixnerf_eqx.cli import sweep
 from mixnerf_eqx.data import llff
 
 # A sweep of the tiny model that trains in seconds; its runs stop at 8 steps.
@@ -170,7 +170,8 @@ def test_an_unknown_scene_is_refused_before_any_run(tmp_path, capsys):
 
 
 def test_a_repeated_seed_or_scene_is_named(tmp_path, capsys):
-    assert sweep.main(["--out", str(tmp_path), "--seeds", "0,1,0", *SWEEP_OVERRIDES]) == 2
+    arguments = ["--config", "builtin", "--out", str(tmp_path), "--seeds", "0,1,0"]
+    assert sweep.main([*arguments, *SWEEP_OVERRIDES]) == 2
     assert "listed more than once: 0" in capsys.readouterr().err
 
 
@@ -188,6 +189,8 @@ def test_a_sweep_on_submitits_local_executor(tmp_path, monkeypatch):
     _import_submitit(monkeypatch)
     out = tmp_path / "jobs_sweep"
     arguments = [
+        "--config",
+        "builtin",
         "--engine",
         "submitit",
         "--cluster",

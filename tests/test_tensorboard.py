@@ -138,7 +138,7 @@ def test_the_jsonl_stays_required():
 def test_a_sweep_writes_one_tensorboard_run_per_scene_and_seed(tmp_path):
     from helpers import TINY_OVERRIDES
 
-    from mixnerf_eqx import sweep
+    from mixnerf_eqx.cli import sweep
 
     overrides = [o for o in TINY_OVERRIDES if not o.startswith("train.max_steps")]
     overrides += ["train.max_steps=4", "data.num_test_views=1", 'train.log_to=["jsonl", "tensorboard"]']

@@ -11,8 +11,8 @@ import pytest
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, draw_batch, fit, init_train_state, make_train_step, training_rays
-from mixnerf_eqx._checkpoint import latest_checkpoint, read_checkpoint_meta
-from mixnerf_eqx._schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
+from mixnerf_eqx._train.checkpoint import latest_checkpoint, read_checkpoint_meta
+from mixnerf_eqx._train.schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
 from mixnerf_eqx.metrics import psnr
 
 
@@ -178,7 +178,7 @@ def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, m
     state = eqx.tree_at(lambda s: s.step, init_train_state(config, tiny_scene), jnp.asarray(99, jnp.int32))
     monkeypatch.setattr(eqx, "tree_serialise_leaves", crash)
     with pytest.raises(mx.CheckpointError, match="disk full"):
-        mx.save_checkpoint(config.train.run_dir, state, config={})
+        mx.runs.save_checkpoint(config.train.run_dir, state, config={})
     assert latest_checkpoint(config.train.run_dir) == before
 
 
@@ -218,8 +218,15 @@ def test_schedules_given_as_fractions_of_the_run(tiny_config, tiny_scene):
     config = _with_train(tiny_config, max_steps=400)
     config = _with(config, "optim", warmup_fraction=0.1)
     config = _with(config, "loss", lambda_colour_fraction=0.25)
-    config = _with(_with(config, "train", anneal_fraction=0.05), "grid", coarse_to_fine_fraction=0.5)
-    lengths = mx.schedule_steps(config)
+    config = _with(config, "train", anneal_fraction=0.05)
+    # The grid field's reveal, on the same run with the grid field (its section applies there only).
+    on_grid = dataclasses.replace(
+        config,
+        model=dataclasses.replace(config.model, field="grid"),
+        mlp=type(config.mlp)(),
+        grid=dataclasses.replace(config.grid, coarse_to_fine_fraction=0.5),
+    )
+    lengths = mx.schedule_steps(on_grid)
     assert (lengths.warmup, lengths.lambda_colour, lengths.anneal, lengths.coarse_to_fine) == (
         40,
         100,
@@ -231,7 +238,7 @@ def test_schedules_given_as_fractions_of_the_run(tiny_config, tiny_scene):
     assert plain.warmup == tiny_config.optim.warmup_steps
     assert plain.lambda_colour == tiny_config.loss.lambda_colour_steps
     # A continued run keeps the horizon of its first length, so its schedules stay.
-    continued = _with(_with_train(config, max_steps=4000), "optim", decay_steps=400)
+    continued = _with(_with_train(on_grid, max_steps=4000), "optim", decay_steps=400)
     assert mx.schedule_steps(continued) == lengths
     # A tiny fraction still lasts a step.
     assert mx.schedule_steps(_with(config, "optim", warmup_fraction=1e-6)).warmup == 1
@@ -283,7 +290,9 @@ def test_no_periodic_evaluation_without_validation_views(tiny_config, tiny_scene
 def test_initial_parameters_equal_those_drawn_op_by_op(tiny_config, tiny_scene, overrides):
     """`init_train_state` draws the model in one compiled program: the same parameters, bit
     for bit, as `build_model` run eagerly with the same key, and one compilation per setting."""
-    config = mx.load_config("builtin", [*_tiny_overrides(), *overrides]) if overrides else tiny_config
+    from helpers import TINY_SHARED_OVERRIDES
+
+    config = mx.load_config("builtin", [*TINY_SHARED_OVERRIDES, *overrides]) if overrides else tiny_config
     model_key, _ = jax.random.split(mx.init_key(config))
     eager = mx.build_model(
         config,

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import _json as strict_json
-from mixnerf_eqx._predictive import ColourMixture, TerminationDistribution
+from mixnerf_eqx._predictive.distribution import ColourMixture, TerminationDistribution
+from mixnerf_eqx._util import json_io as strict_json
 
 
 def _mixture():
@@ -142,12 +142,12 @@ def test_eval_refuses_a_temperature_without_uncertainty(tmp_path):
 
 
 def test_a_reveal_longer_than_the_run_is_a_warning_and_a_fraction_is_not(tiny_scene, tmp_path):
-    from helpers import TINY_OVERRIDES
+    from helpers import TINY_OVERRIDES, TINY_SHARED_OVERRIDES
 
     from mixnerf_eqx._config import replace_setting
 
     grid = [
-        *TINY_OVERRIDES,
+        *TINY_SHARED_OVERRIDES,
         'model.field="grid"',
         "grid.levels=2",
         "grid.min_resolution=8",
@@ -158,11 +158,9 @@ def test_a_reveal_longer_than_the_run_is_a_warning_and_a_fraction_is_not(tiny_sc
     assert message.startswith("grid.coarse_to_fine_steps = 10 is longer than the run (train.max_steps = 3)")
     assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_fraction=1.0)) == []
     assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_steps=3)) == []
-    # The MLP has no levels to reveal: the grid's keys say nothing to it.
-    assert (
-        mx.setting_warnings(mx.load_config("builtin", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"]))
-        == []
-    )
+    # The MLP has no levels to reveal: a grid key given to it is an error, not ignored.
+    with pytest.raises(mx.ConfigError, match="grid.coarse_to_fine_steps = 10: .grid. does not apply"):
+        mx.load_config("builtin", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"])
     # A run with it trains, and says so once at its start.
     long = replace_setting(long, "train", run_dir=str(tmp_path / "run"))
     with pytest.warns(mx.SettingWarning, match="the finest levels are never fully revealed"):
@@ -171,7 +169,7 @@ def test_a_reveal_longer_than_the_run_is_a_warning_and_a_fraction_is_not(tiny_sc
 
 
 def test_the_public_api_keeps_its_names():
-    assert mx.FolderBusyError is not None and callable(mx.hold_folder)
+    assert mx.FolderBusyError is not None and callable(mx.runs.hold_folder)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import numpy as np
 from jaxtyping import Bool, Float
 
 from .._custom_types import DepthStack, ImageStack, PoseStack
-from .._rays import RayBundle, camera_rays
+from .._nn.rays import RayBundle, camera_rays
 
 
 @dataclasses.dataclass(frozen=True)
@@ -18,13 +18,13 @@ class Views:
     **Fields:**
 
     - `images`: linear RGB in [0, 1], already composited on the background.
-    - `camtoworlds`: camera-to-world matrices (OpenGL convention, see `mixnerf_eqx._rays`).
+    - `camtoworlds`: camera-to-world matrices (OpenGL convention, see `mixnerf_eqx._nn.rays`).
     - `focal`: focal length in pixels.
     - `depths`: true depth along the unnormalised ray direction (camera z-depth), `inf`
       where the ray hits nothing; `None` when the scene has no true depth.
     - `ids`: the views' indices in the source dataset, for reporting.
     - `intrinsics`: per-view pinhole matrices `K` in the OpenCV pixel convention (see
-      `mixnerf_eqx._rays`), for cameras whose principal point is off-centre, whose two focal
+      `mixnerf_eqx._nn.rays`), for cameras whose principal point is off-centre, whose two focal
       lengths differ, or whose intrinsics differ from view to view (DTU); `None`: `focal` on
       both axes and the principal point at the image centre.
     - `masks`: object masks, true on the object (DTU's evaluation masks); `None` when the
@@ -145,7 +145,7 @@ SPLITS = ("train", "val", "test")
 def rays_for_views(views: Views, near: float, far: float) -> RayBundle:
     """The rays through every pixel of `views`, in the ray space the views ask for.
 
-    This is `mixnerf_eqx._rays.camera_rays` with the views' own intrinsics, NDC flag and
+    This is `mixnerf_eqx._nn.rays.camera_rays` with the views' own intrinsics, NDC flag and
     origin plane, so that training and evaluation build rays the same way for every dataset.
 
     **Arguments:**

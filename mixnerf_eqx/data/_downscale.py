@@ -7,7 +7,7 @@ pixel is the exact box average of a `factor x factor` block of those pixels.
 A side that the factor does not divide first loses its remainder, half from each end (the
 odd row or column, if any, from the bottom or the right), so that as little as possible of
 the picture is lost and the blocks stay centred. The cameras follow: pixel centres sit at
-`col + 0.5` (see `mixnerf_eqx._rays`), so cropping `left` columns moves the principal point
+`col + 0.5` (see `mixnerf_eqx._nn.rays`), so cropping `left` columns moves the principal point
 by `-left` and box averaging divides every intrinsic by the factor; the ray through the
 centre of an output pixel is then exactly the ray through the centre of its block. A
 principal point at the image centre (LLFF, Blender) stays at the centre unless a remainder
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Bool, Float, UInt8
 
-from .._rays import intrinsic_matrix
+from .._nn.rays import intrinsic_matrix
 from ._errors import DatasetError
 from ._files import area_downsample
 

@@ -17,7 +17,7 @@ import numpy as np
 from jaxtyping import Float
 
 from .._custom_types import DepthStack, ImageStack
-from .._rays import pixel_directions
+from .._nn.rays import pixel_directions
 from ._dataset import Dataset, Views
 
 __all__ = ["make_builtin_scene"]

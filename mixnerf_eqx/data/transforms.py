@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .._rays import intrinsic_matrix
+from .._nn.rays import intrinsic_matrix
 from ._dataset import Dataset, Views
 from ._downscale import check_factor, downscale_image, downscale_intrinsics
 from ._errors import DatasetError

@@ -1,7 +1,7 @@
 """Tests of the LLFF loader on tiny scenes written here and on the real fern when present.
 
 NDC references follow NeRF's appendix C formula, derived here in float64 from the world rays
-of a pinhole camera (independently of `mixnerf_eqx._rays`).
+of a pinhole camera (independently of `mixnerf_eqx._nn.rays`).
 
 Images pair with the rows of `poses_bounds.npy` in plain sorted name order: LLFF's
 `imgs2poses.py` stores the poses in the `np.argsort` order of the image names and the NeRF

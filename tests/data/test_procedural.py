@@ -1,7 +1,7 @@
 """Tests of the built-in procedural scene.
 
 The geometric checks recompute every ray from the stored poses and focal with their own
-formula (not `mixnerf_eqx._rays`), then check the hit points against the shapes' implicit
+formula (not `mixnerf_eqx._nn.rays`), then check the hit points against the shapes' implicit
 equations and against a brute-force ray march, so they do not share code with the renderer.
 """
 

@@ -1,0 +1,169 @@
+"""Choosing an occupancy grid's density threshold from the trained model itself.
+
+A fixed density threshold means different things in different scenes: after a short run a
+model may hold its whole image in a low-density haze (then even a threshold of 1 removes
+content), while a converged model's empty space is far below it. `choose_threshold` picks,
+per model, the largest threshold whose skipping render of a set of threshold rays (pixels
+of the training views) stays within a tolerance of the dense render, measured as a bound on
+the PSNR it can lose:
+
+    RMS(skipped - target) <= RMS(dense - target) + RMS(skipped - dense)
+
+(the triangle inequality for the root-mean-square norm), so the skipping render's PSNR
+against `target` is at most `20 log10(1 + RMS(skipped - dense) / RMS(dense - target))` dB
+lower than the dense one's. On the threshold rays this holds exactly; on other views it is
+an estimate.
+"""
+
+import dataclasses
+import math
+
+import jax
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._custom_types import PRNGKey
+from .._nn.model import MixNeRF
+from .._nn.rays import RayBundle
+from ..data import Dataset, rays_for_views
+from .evaluation import render_rays
+from .occupancy import OccupancyGrid
+from .skipping import Skipping
+
+
+@dataclasses.dataclass(frozen=True)
+class ThresholdTrial:
+    """One tried threshold: its PSNR-drop bound on the threshold rays and its savings."""
+
+    threshold: float
+    bound_db: float
+    reduction: float
+
+
+@dataclasses.dataclass(frozen=True)
+class ThresholdChoice:
+    """What `choose_threshold` chose and why.
+
+    **Fields:**
+
+    - `threshold`: the chosen density threshold.
+    - `bound_db`: its bound on the PSNR lost on the threshold rays.
+    - `reduction`: dense field evaluations per evaluation made, on the threshold rays.
+    - `within_tolerance`: whether `bound_db <= tolerance_db`; `False` only when not even
+      the threshold 0 (which skips only cells of exactly zero density) met it.
+    - `tolerance_db`: the tolerance asked for.
+    - `trials`: every threshold rendered, in the order tried.
+    """
+
+    threshold: float
+    bound_db: float
+    reduction: float
+    within_tolerance: bool
+    tolerance_db: float
+    trials: tuple[ThresholdTrial, ...]
+
+
+def psnr_drop_bound(
+    dense: np.ndarray | Float[Array, "..."],
+    skipped: np.ndarray | Float[Array, "..."],
+    target: np.ndarray | Float[Array, "..."],
+) -> float:
+    """Upper bound in dB on `psnr(dense, target) - psnr(skipped, target)` (module docstring).
+
+    0 when `skipped` equals `dense`; `inf` when they differ and `dense` equals `target`.
+    """
+    dense, skipped, target = (np.asarray(x, np.float64) for x in (dense, skipped, target))
+    difference = math.sqrt(np.mean((skipped - dense) ** 2))
+    error = math.sqrt(np.mean((dense - target) ** 2))
+    if difference == 0:
+        return 0.0
+    if error == 0:
+        return math.inf
+    return 20 * math.log10(1 + difference / error)
+
+
+def threshold_rays(dataset: Dataset, num_rays: int, *, key: PRNGKey) -> tuple[RayBundle, np.ndarray]:
+    """`num_rays` distinct random pixels of the training views: their rays and colours."""
+    views = dataset.train
+    count = views.num_views * views.height * views.width
+    if num_rays < 1:
+        raise ValueError(f"num_rays must be at least 1, got {num_rays}")
+    seed = int(jax.random.randint(key, (), 0, 2**31 - 1))
+    chosen = np.random.default_rng(seed).choice(count, size=min(num_rays, count), replace=False)
+    rays = rays_for_views(views, dataset.near, dataset.far).reshape(-1)[chosen]
+    colours = np.asarray(views.images, np.float32).reshape(-1, 3)[chosen]
+    return rays, colours
+
+
+def choose_threshold(
+    model: MixNeRF,
+    grid: OccupancyGrid,
+    skipping: Skipping,
+    rays: RayBundle,
+    target: np.ndarray | Float[Array, "batch channels"],
+    *,
+    tolerance_db: float = 0.1,
+    doublings: int = 14,
+    chunk: int = 4096,
+) -> tuple[OccupancyGrid, ThresholdChoice]:
+    """The largest threshold of `grid.threshold * 2^k`, `k = 0..doublings`, within tolerance.
+
+    **Arguments:**
+
+    - `model`: the trained model.
+    - `grid`: its evaluated occupancy grid; `grid.threshold` (> 0) is the smallest candidate.
+      Only the threshold changes between candidates (an array leaf), so every candidate
+      reuses the compiled render.
+    - `skipping`: the other rendering options (early termination); its grid is replaced.
+    - `rays`, `target`: the threshold rays and their colours (`threshold_rays`).
+    - `tolerance_db`: the largest bound on the PSNR lost that is accepted.
+    - `doublings`: how many times the smallest candidate is doubled at most.
+    - `chunk`: rays rendered at once.
+
+    The candidates are searched by bisection, which assumes that a larger threshold never
+    changes the image less (more cells are skipped); `log2(doublings + 1) + 1` renders. If
+    not even the smallest candidate is within tolerance, the threshold 0 is rendered and
+    returned.
+
+    **Returns:**
+
+    `(grid with the chosen threshold, ThresholdChoice)`.
+    """
+    smallest = float(grid.threshold)
+    if smallest <= 0:
+        raise ValueError(f"the grid's threshold is the smallest candidate and must be > 0, got {smallest}")
+    if tolerance_db < 0 or doublings < 0:
+        raise ValueError("tolerance_db and doublings must be >= 0")
+    target = np.asarray(target, np.float32).reshape(-1, 3)
+    dense = render_rays(model, rays, chunk).rgb.reshape(-1, 3)
+    trials: list[ThresholdTrial] = []
+
+    def trial(threshold: float) -> ThresholdTrial:
+        candidate = dataclasses.replace(skipping, grid=grid.with_threshold(threshold))
+        rendered = render_rays(model, rays, chunk, skipping=candidate)
+        result = ThresholdTrial(
+            threshold, psnr_drop_bound(dense, rendered.rgb.reshape(-1, 3), target), rendered.counts.reduction
+        )
+        trials.append(result)
+        return result
+
+    candidates = [smallest * 2.0**k for k in range(doublings + 1)]
+    low, high, best = 0, len(candidates) - 1, None
+    while low <= high:
+        middle = (low + high) // 2
+        result = trial(candidates[middle])
+        if result.bound_db <= tolerance_db:
+            best, low = result, middle + 1
+        else:
+            high = middle - 1
+    if best is None:
+        best = trial(0.0)
+    choice = ThresholdChoice(
+        threshold=best.threshold,
+        bound_db=best.bound_db,
+        reduction=best.reduction,
+        within_tolerance=best.bound_db <= tolerance_db,
+        tolerance_db=tolerance_db,
+        trials=tuple(trials),
+    )
+    return grid.with_threshold(best.threshold), choice

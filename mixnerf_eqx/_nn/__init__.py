@@ -1,0 +1,1 @@
+"""The model: rays, encodings, samplers, fields, the renderer, the mixture and MixNeRF itself."""

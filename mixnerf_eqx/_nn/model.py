@@ -1,0 +1,284 @@
+"""The MixNeRF model: a field, two samplers, a renderer and a mixture in one pytree.
+
+Rendering a level is three steps, each a method of the model: `sample_*` places the samples
+(the samplers), `query_field` calls the field at them, `composite` turns the field's outputs into
+pixels (the renderer). The dense render (`__call__`) and the render that skips empty space
+(`mixnerf_eqx._inference.skipping`) run the same three steps; the second only evaluates fewer samples.
+"""
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._config import Config, schedule_steps
+from .._custom_types import FourKeysPerRay, PRNGKey, RayKeys
+from .field import AbstractField, FieldOutputs, GridField, HashEncoding, MipNeRFField, TriPlaneEncoding
+from .field.grid import level_resolutions
+from .mixture import AbstractMixture, LaplaceMixture
+from .rays import Box, RayBundle, RaySamples, radius_box
+from .renderer import AbstractRenderer, LevelOutputs, VolumeRenderer
+from .sampler import AbstractSampler, HierarchicalSampler, StratifiedSampler
+
+
+class RenderOutputs(eqx.Module):
+    """Both levels of a batch of rays; the fine level is the model's prediction."""
+
+    coarse: LevelOutputs
+    fine: LevelOutputs
+
+
+def _vmap_sampler(sampler: AbstractSampler, *args, keys: RayKeys | None) -> RaySamples:
+    if keys is None:
+        return jax.vmap(lambda *a: sampler(*a))(*args)
+    return jax.vmap(lambda k, *a: sampler(*a, key=k))(keys, *args)
+
+
+class MixNeRF(eqx.Module):
+    """mip-NeRF's two-level cone tracer with MixNeRF's mixture density (paper Sec. 3).
+
+    The same `field` serves the coarse level (samples from `coarse_sampler`) and the fine
+    level (samples from `fine_sampler`, drawn from the coarse weights). `mixture` holds the
+    mixture density used by the losses; the mip-NeRF baseline is the same model whose field
+    has no mixture heads and whose `mixture` is `None`. With `remat`, the field's activations
+    are recomputed in the backward pass instead of stored, which bounds training memory at the
+    paper's batch on small machines for about a third more compute.
+
+    Any part can be replaced by another implementation of its abstract class, e.g.
+    `eqx.tree_at(lambda m: m.fine_sampler, model, OtherSampler(...))`; the dense and the
+    skipping render both follow the replacement.
+    """
+
+    field: AbstractField
+    coarse_sampler: AbstractSampler
+    fine_sampler: AbstractSampler
+    renderer: AbstractRenderer
+    mixture: AbstractMixture | None
+    remat: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if self.mixture is not None and not self.field.has_mixture_heads:
+            raise ValueError("a mixture needs a field with mixture heads (beta and ray depth)")
+
+    @property
+    def samples_per_ray(self) -> int:
+        """Field evaluations the dense render makes per ray (both levels)."""
+        return self.coarse_sampler.num_samples + self.fine_sampler.num_samples
+
+    def sample_coarse(self, rays: RayBundle, keys: RayKeys | None = None) -> RaySamples:
+        """The coarse samples of a flat batch of rays (`keys`: one per ray, or `None`)."""
+        return _vmap_sampler(self.coarse_sampler, rays, keys=keys)
+
+    def sample_fine(self, rays: RayBundle, coarse: LevelOutputs, keys: RayKeys | None = None) -> RaySamples:
+        """The fine samples of a flat batch of rays, drawn from the coarse level's weights."""
+        return _vmap_sampler(self.fine_sampler, rays, coarse.t_edges, coarse.weights, keys=keys)
+
+    def query_points(
+        self,
+        means: Float[Array, "batch 3"],
+        covs: Float[Array, "batch 3"],
+        viewdirs: Float[Array, "batch 3"],
+        keys: RayKeys | None = None,
+    ) -> FieldOutputs:
+        """The field at a flat list of frustum Gaussians (`keys`: one per point, or `None`).
+
+        A flat list makes each dense layer one matrix product over every point (a field
+        vmapped over rays and then over samples ran about 1.5x slower on the CPU:
+        `benchmarks/LOG.md`, "Profile of the training step").
+        """
+        evaluate = type(self.field).evaluate_batch
+        if self.remat:
+            evaluate = jax.checkpoint(evaluate)
+        return evaluate(self.field, means, covs, viewdirs, keys)
+
+    def query_field(self, samples: RaySamples, rays: RayBundle, keys: RayKeys | None = None) -> FieldOutputs:
+        """The field at every sample of a flat batch of rays (`keys`: one per ray, or `None`)."""
+        num_rays, num_samples = samples.means.shape[:2]
+        points = num_rays * num_samples
+        viewdirs = jnp.broadcast_to(rays.viewdirs[:, None, :], (num_rays, num_samples, 3))
+        point_keys = None
+        if keys is not None:
+            # Per ray, one key per sample, as `jax.random.split(ray_key, num_samples)`.
+            point_keys = jax.vmap(lambda k: jax.random.split(k, num_samples))(keys)
+            point_keys = point_keys.reshape(points, *point_keys.shape[2:])
+        outputs = self.query_points(
+            samples.means.reshape(points, 3),
+            samples.covs.reshape(points, 3),
+            viewdirs.reshape(points, 3),
+            point_keys,
+        )
+        return jax.tree_util.tree_map(lambda x: x.reshape(num_rays, num_samples, *x.shape[1:]), outputs)
+
+    def composite(self, outputs: FieldOutputs, samples: RaySamples, rays: RayBundle) -> LevelOutputs:
+        """The renderer over a flat batch of rays."""
+        return jax.vmap(self.renderer)(outputs, samples.t_edges, rays)
+
+    def _render_flat(self, rays: RayBundle, ray_keys: FourKeysPerRay | None) -> RenderOutputs:
+        """Renders a flat batch of rays; `ray_keys` holds four keys per ray, or is `None`.
+
+        A ray's keys are, in order, for the coarse sampler, the coarse density noise, the fine
+        sampler and the fine density noise.
+        """
+
+        def keys(index: int):
+            return None if ray_keys is None else ray_keys[:, index]
+
+        coarse_samples = self.sample_coarse(rays, keys(0))
+        coarse = self.composite(self.query_field(coarse_samples, rays, keys(1)), coarse_samples, rays)
+        fine_samples = self.sample_fine(rays, coarse, keys(2))
+        fine = self.composite(self.query_field(fine_samples, rays, keys(3)), fine_samples, rays)
+        return RenderOutputs(coarse=coarse, fine=fine)
+
+    def render_ray(self, ray: RayBundle, *, key: PRNGKey | None = None) -> RenderOutputs:
+        """Renders one ray (empty batch shape); `key=None` renders deterministically."""
+        ray_keys = None if key is None else jax.random.split(key, 4)[None]
+        outputs = self._render_flat(ray.reshape(1), ray_keys)
+        return jax.tree_util.tree_map(lambda x: x[0], outputs)
+
+    def __call__(self, rays: RayBundle, *, key: PRNGKey | None = None) -> RenderOutputs:
+        """Renders a batch of rays of any batch shape.
+
+        **Arguments:**
+
+        - `rays`: the rays.
+        - `key`: training randomness (jittered samples, density noise); `None` for the
+          deterministic evaluation render. Ray `i` of the flattened batch renders as
+          `render_ray(ray_i, key=jax.random.split(key, num_rays)[i])` does.
+
+        **Returns:**
+
+        A `RenderOutputs` whose leaves have `rays.batch_shape` in front.
+        """
+        batch_shape = rays.batch_shape
+        flat = rays.reshape(-1)
+        ray_keys = None
+        if key is not None:
+            ray_keys = jax.vmap(lambda k: jax.random.split(k, 4))(
+                jax.random.split(key, flat.origins.shape[0])
+            )
+        outputs = self._render_flat(flat, ray_keys)
+        return jax.tree_util.tree_map(lambda x: x.reshape(*batch_shape, *x.shape[1:]), outputs)
+
+
+def _mlp_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> MipNeRFField:
+    """The paper's field: the mip-NeRF MLP (`[mlp]`; the view encoding, density bias and colour
+    padding from `[model]`)."""
+    del scene_box  # the MLP's integrated encoding needs no box
+    mlp, model_cfg = config.mlp, config.model
+    return MipNeRFField(
+        width=mlp.width,
+        depth=mlp.depth,
+        view_width=mlp.view_width,
+        skip_layer=mlp.skip_layer,
+        min_deg=mlp.min_deg,
+        max_deg=mlp.max_deg,
+        viewdir_max_deg=model_cfg.viewdir_max_deg,
+        density_noise=mlp.density_noise,
+        density_bias=model_cfg.density_bias,
+        rgb_padding=model_cfg.rgb_padding,
+        mixture_heads=mixture_heads,
+        matmul_dtype=mlp.matmul_dtype,
+        key=key,
+    )
+
+
+def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> GridField:
+    """A grid encoding and a small decoder (`[grid]`; the view encoding, density bias and
+    colour padding from `[model]`). It spans `[-r, r]^3` when `config.grid.box_radius = r > 0`
+    (the scene lies inside; nothing outside), and otherwise `scene_box`."""
+    grid, model_cfg = config.grid, config.model
+    box = radius_box(grid.box_radius)
+    bounded = box is not None
+    scene_box = box if bounded else scene_box
+    if scene_box is None:
+        raise ValueError("a grid field with grid.box_radius = 0 needs the scene's box (scene_box)")
+    encoding_key, decoder_key = jax.random.split(key)
+    resolutions = level_resolutions(grid.levels, grid.min_resolution, grid.max_resolution)
+    if grid.encoding == "triplane":
+        encoding = TriPlaneEncoding(resolutions, grid.features, key=encoding_key)
+    else:
+        encoding = HashEncoding(resolutions, grid.features, 2**grid.hash_table_log2, key=encoding_key)
+    return GridField(
+        encoding,
+        box_min=tuple(float(v) for v in scene_box[0]),
+        box_max=tuple(float(v) for v in scene_box[1]),
+        bounded=bounded,
+        decoder_width=grid.decoder_width,
+        geo_features=grid.geo_features,
+        view_width=grid.view_width,
+        viewdir_max_deg=model_cfg.viewdir_max_deg,
+        scale_weighting=grid.scale_weighting,
+        tv_weight=grid.tv_weight,
+        coarse_to_fine_steps=schedule_steps(config).coarse_to_fine,
+        density_activation=grid.density_activation,
+        density_noise=grid.density_noise,
+        density_bias=model_cfg.density_bias,
+        rgb_padding=model_cfg.rgb_padding,
+        mixture_heads=mixture_heads,
+        lookup=grid.lookup,
+        key=decoder_key,
+    )
+
+
+# `config.model.field` -> the constructor of that field. A new field is one entry here (and
+# its name in `ModelConfig.field`, its section in `_config.FIELD_SECTIONS`);
+# `tests/test_field_contract.py` then holds it to the contract every field meets.
+FIELD_BUILDERS: dict[str, Callable[..., AbstractField]] = {"mlp": _mlp_field, "grid": _grid_field}
+
+
+def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -> AbstractField:
+    """The field `config.model.field` names (`FIELD_BUILDERS`), with mixture heads for
+    MixNeRF; `scene_box` is the training frusta's box (a grid field without
+    `grid.box_radius` spans it)."""
+    builder = FIELD_BUILDERS.get(config.model.field)
+    if builder is None:
+        raise ValueError(f"model.field {config.model.field!r} is none of {sorted(FIELD_BUILDERS)}")
+    return builder(config, mixture_heads=config.method == "mixnerf", key=key, scene_box=scene_box)
+
+
+def build_model(
+    config: Config,
+    *,
+    key: PRNGKey,
+    frustum: str = "cone",
+    white_background: bool = True,
+    scene_box: Box | None = None,
+) -> MixNeRF:
+    """Builds the model that `config` describes.
+
+    **Arguments:**
+
+    - `config`: the run's configuration; `config.method` chooses MixNeRF or the mip-NeRF
+      baseline, `config.model` the field and samplers, `config.loss` the mixture's numerics.
+    - `key`: initialisation randomness.
+    - `frustum`: the dataset's frustum shape, used when `config.model.frustum` is `"auto"`.
+    - `white_background`: composite on white (Blender-style scenes).
+    - `scene_box`: the training frusta's box `(min, max)`, which a grid field spans unless
+      `config.grid.box_radius` is set (`mixnerf_eqx.scene_box` computes it).
+
+    **Returns:**
+
+    A `MixNeRF`; for `method = "mipnerf"`, without mixture heads and mixture.
+    """
+    model_cfg = config.model
+    shape = frustum if model_cfg.frustum == "auto" else model_cfg.frustum
+    mixture_model = config.method == "mixnerf"
+    field = build_field(config, key=key, scene_box=scene_box)
+    mixture = None
+    if mixture_model:
+        mixture = LaplaceMixture(
+            weight_eps=config.loss.weight_eps,
+            likelihood_floor=config.loss.likelihood_floor or None,
+            depth_scale=config.loss.depth_scale,
+            evaluation=config.loss.nll_evaluation,
+        )
+    return MixNeRF(
+        field=field,
+        coarse_sampler=StratifiedSampler(model_cfg.num_coarse_samples, shape, model_cfg.lindisp),
+        fine_sampler=HierarchicalSampler(model_cfg.num_fine_samples, shape, model_cfg.resample_padding),
+        renderer=VolumeRenderer((1.0, 1.0, 1.0) if white_background else None),
+        mixture=mixture,
+        remat=model_cfg.remat,
+    )

@@ -1,0 +1,1 @@
+"""The predictive distribution of a ray's colour and depth, and its calibration."""

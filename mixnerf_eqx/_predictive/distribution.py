@@ -1,0 +1,673 @@
+"""The mixture as a predictive distribution: what a trained MixNeRF believes about each pixel.
+
+MixNeRF scores a ray's colour with a mixture of per-sample Laplace densities whose
+coefficients are the normalised blending weights (paper eqs. 4-6). Here that mixture is the
+object: its mean, per-channel quantiles and central intervals, standard deviation, the mode of
+its joint RGB density, and the entropy of its coefficients; and beside it the distribution of
+where the ray terminates (the normalised weights, uniform within each interval), with its
+mean, quantiles, intervals and spread. `docs/predictive.md` says what each quantity means and
+which level's heads it uses.
+
+The per-ray math is pure functions of arrays; `ColourMixture` and `TerminationDistribution`
+hold a batch of rays' parameters and lift those functions over it with `vmap`. Quantiles are
+root finds (`optx.Bisection`, bracketed by the components' own quantiles, or by the ray's
+first and last edge); the mode is a minimisation (`optx.BFGS`) started from the best
+component.
+"""
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from .._custom_types import RGB, Edges, PerSample, PerSampleRGB, ScalarLike
+from .._nn.compositing import BISECTION_STEPS, expected_depth, termination_quantile
+from .._nn.mixture import LaplaceMixture
+from .._nn.mixture.laplace import laplace_log_density
+from .._nn.model import MixNeRF
+from .._nn.rays import RayBundle
+from .._nn.renderer import LevelOutputs
+
+# The colour quantiles' bisections take as many halvings as the depth's (colours bracket
+# themselves within about one unit: 24 halvings reach float32's resolution there too).
+_BISECTION_STEPS = BISECTION_STEPS
+_TOLERANCE = 1e-7
+# Each sweep of the mode search strictly raises the density or ends it; few are ever needed.
+_MODE_SWEEPS = 16
+# The relative gain in log density below which the mode search stops moving.
+_MODE_GAIN = 1e-6
+
+# Normalised weights with no epsilon: the predictive coefficients sum to one, and a ray whose
+# weights all vanish gets uniform coefficients (see `LaplaceMixture.log_mixing_coefficients`).
+_COEFFICIENTS = LaplaceMixture(weight_eps=0.0)
+
+
+def mixing_coefficients(weights: PerSample) -> PerSample:
+    """`pi_j = w_j / sum_m w_m` (eq. 6), summing to one; uniform for a ray without weight."""
+    return jnp.exp(_COEFFICIENTS.log_mixing_coefficients(weights))
+
+
+# Quantile levels: a sequence of numbers, or a 1-d array of them.
+Levels = Sequence[ScalarLike] | Float[Array, " _"] | Float[np.ndarray, " _"]
+
+
+def _inverse_scale(scale: Float[Array, "*#batch"]) -> Float[Array, "*#batch"]:
+    # exp(-log b) rather than 1 / b, so that a scale that underflowed to 0 gives the largest
+    # finite inverse instead of inf (and 0 * inf = NaN for a sample sitting on the location).
+    return jnp.exp(-jnp.log(jnp.maximum(scale, jnp.finfo(scale.dtype).tiny)))
+
+
+def laplace_cdf(
+    x: Float[Array, "*#batch"], location: Float[Array, "*#batch"], scale: Float[Array, "*#batch"]
+) -> Float[Array, "*#batch"]:
+    """The Laplace distribution function, `1/2 exp(z)` below the location, `1 - 1/2 exp(-z)`
+    above it, with `z = (x - location) / scale`; elementwise with broadcasting."""
+    tail = 0.5 * jnp.exp(-jnp.abs(x - location) * _inverse_scale(scale))
+    return jnp.where(x < location, tail, 1.0 - tail)
+
+
+def laplace_quantile(
+    level: ScalarLike, location: Float[Array, "*#batch"], scale: Float[Array, "*#batch"]
+) -> Float[Array, "*#batch"]:
+    """The inverse of `laplace_cdf` at `level` in (0, 1)."""
+    offset = jnp.where(level < 0.5, jnp.log(2.0 * level), -jnp.log(2.0 - 2.0 * level))
+    return location + scale * offset
+
+
+def channel_cdf(
+    x: Float[Array, ""], coefficients: PerSample, location: PerSample, scale: PerSample
+) -> Float[Array, ""]:
+    """One colour channel's mixture distribution function `sum_j pi_j F_j(x)`."""
+    return _channel_cdf(x, coefficients, location, _inverse_scale(scale))
+
+
+def _channel_cdf(
+    x: Float[Array, ""], coefficients: PerSample, location: PerSample, inverse_scale: PerSample
+) -> Float[Array, ""]:
+    # With the inverse scales formed once, outside a solve's loop: one exponential per
+    # component and step.
+    tail = 0.5 * jnp.exp(-jnp.abs(x - location) * inverse_scale)
+    return jnp.sum(coefficients * jnp.where(x < location, tail, 1.0 - tail))
+
+
+def channel_quantile(
+    level: ScalarLike, coefficients: PerSample, location: PerSample, scale: PerSample
+) -> Float[Array, ""]:
+    """One colour channel's mixture quantile at `level` in (0, 1), by bisection.
+
+    The mixture's distribution function is a convex combination of its components', so its
+    `level` quantile lies between the smallest and the largest of the components' `level`
+    quantiles (components with `pi_j > 0` only): that is the bracket. The root is
+    differentiated implicitly with respect to the mixture's parameters.
+    """
+    level = jnp.asarray(level, location.dtype)
+    present = coefficients > 0
+    component = jax.lax.stop_gradient(laplace_quantile(level, location, scale))
+    lower = jnp.min(jnp.where(present, component, jnp.inf))
+    upper = jnp.max(jnp.where(present, component, -jnp.inf))
+
+    def residual(x, args):
+        level, coefficients, location, inverse_scale = args
+        return _channel_cdf(x, coefficients, location, inverse_scale) - level
+
+    solution = optx.root_find(
+        residual,
+        optx.Bisection(rtol=_TOLERANCE, atol=_TOLERANCE, flip=False),
+        lower + 0.5 * (upper - lower),
+        args=(level, coefficients, location, _inverse_scale(scale)),
+        options=dict(lower=lower, upper=upper),
+        max_steps=_BISECTION_STEPS,
+        throw=False,
+    )
+    return jnp.clip(solution.value, lower, upper)
+
+
+def joint_log_density(
+    rgb: RGB, coefficients: PerSample, location: PerSampleRGB, scale: PerSampleRGB
+) -> Float[Array, ""]:
+    """`log sum_j pi_j prod_c Laplace(rgb_c; mu_jc, beta_jc)`, the density the colour NLL
+    scores (eqs. 4-6); `-inf` nowhere a component has mass and the scales are finite."""
+    component = jnp.sum(laplace_log_density(rgb, location, scale), axis=-1)
+    present = coefficients > 0
+    terms = jnp.where(present, jnp.log(jnp.where(present, coefficients, 1.0)) + component, -jnp.inf)
+    return jax.scipy.special.logsumexp(terms)
+
+
+class _ModeSearch(eqx.Module):
+    # What every step of one ray's mode search reuses: log(pi_j / (8 prod_c beta_jc)), the
+    # inverse scales, and each channel's scaled distances between component locations.
+    log_weight: PerSample
+    location: PerSampleRGB
+    inverse_scale: PerSampleRGB
+    distances: Float[Array, "channels num_samples num_samples"]
+
+    def sweep(self, rgb: RGB, args: None) -> RGB:
+        """One sweep of exact coordinate ascent: each channel in turn moves to the component
+        location, in that channel, where the density (the other channels held) is highest."""
+        del args
+        for channel in range(rgb.shape[0]):
+            # -|x_c - mu_jc| / beta_jc per component and channel, the moving channel left out.
+            exponent = jnp.maximum(-jnp.abs(rgb - self.location) * self.inverse_scale, -1e30)
+            held = self.log_weight + jnp.sum(exponent, axis=-1) - exponent[:, channel]
+            # Row k: the density with channel `channel` at component k's location.
+            candidates = jax.scipy.special.logsumexp(held[None, :] - self.distances[channel], axis=-1)
+            here = jax.scipy.special.logsumexp(held + exponent[:, channel])
+            best = jnp.argmax(candidates)
+            # Move only for a gain above float32's rounding of the log density, so that a
+            # fixed point is reached rather than a cycle between two equally dense points.
+            gain = candidates[best] - here > _MODE_GAIN * (1.0 + jnp.abs(here))
+            rgb = jnp.where(gain, rgb.at[channel].set(self.location[best, channel]), rgb)
+        return rgb
+
+
+def joint_mode(coefficients: PerSample, location: PerSampleRGB, scale: PerSampleRGB) -> RGB:
+    """The mode of the joint RGB density, by coordinate ascent from the best component.
+
+    Within each cell of the grid that the components' locations draw in RGB space (the
+    planes `x_c = mu_jc`), the density is a positive sum of exponentials of linear functions
+    of `x`, hence convex: its maximum over the cell lies at a vertex, and along each channel
+    the maximum of the density lies at some component's location in that channel. The search
+    therefore starts at the component location where the density is highest and sweeps the
+    channels, moving each to its best candidate, until a sweep changes nothing (a fixed
+    point, found by `optx.fixed_point`): a maximum along every channel, at least as dense as
+    every component location. Not differentiated: the mode sits on a kink.
+    """
+    coefficients, location, scale = jax.lax.stop_gradient((coefficients, location, scale))
+    log_scale = jnp.log(jnp.maximum(scale, jnp.finfo(scale.dtype).tiny))
+    present = coefficients > 0
+    log_coefficients = jnp.where(present, jnp.log(jnp.where(present, coefficients, 1.0)), -jnp.inf)
+    inverse_scale = jnp.exp(-log_scale)
+    search = _ModeSearch(
+        log_weight=log_coefficients - jnp.sum(log_scale + jnp.log(2.0), axis=-1),
+        location=location,
+        inverse_scale=inverse_scale,
+        # distances[c, k, j] = |mu_kc - mu_jc| / beta_jc
+        distances=jnp.minimum(
+            jnp.abs(location.T[:, :, None] - location.T[:, None, :]) * inverse_scale.T[:, None, :], 1e30
+        ),
+    )
+    at_components = jax.scipy.special.logsumexp(
+        search.log_weight[None, :] - jnp.sum(search.distances, axis=0), axis=-1
+    )
+    start = location[jnp.argmax(at_components)]
+    solution = optx.fixed_point(
+        search.sweep,
+        optx.FixedPointIteration(rtol=0.0, atol=1e-12),
+        start,
+        max_steps=_MODE_SWEEPS,
+        throw=False,
+    )
+    return solution.value
+
+
+def _per_ray(batch_shape: tuple[int, ...], fn, *arrays: Array):
+    """`fn` of one ray, vmapped over the rays of `arrays` (each with `batch_shape` in front,
+    flattened for the vmap), with `batch_shape` restored in front of every output."""
+    count = math.prod(batch_shape)
+    flat = [x.reshape(count, *x.shape[len(batch_shape) :]) for x in arrays]
+    out = jax.vmap(fn)(*flat)
+    return jax.tree_util.tree_map(lambda x: x.reshape(*batch_shape, *x.shape[1:]), out)
+
+
+def _standard_deviation(masses: PerSample, centres: PerSample, component_std: PerSample) -> Float[Array, ""]:
+    """`sqrt(sum_j m_j (s_j^2 + (c_j - mean)^2))`, the standard deviation of a mixture with
+    masses `m_j`, component means `c_j` and component standard deviations `s_j`."""
+    mean = jnp.sum(masses * centres)
+    # Formed in units of the largest spread of a component with mass, so that scales near
+    # float32's limit do not overflow when squared.
+    present = masses > 0
+    deviation = jnp.abs(centres - mean)
+    unit = jnp.max(jnp.where(present, jnp.maximum(deviation, component_std), 0.0))
+    unit = jax.lax.stop_gradient(jnp.where(unit > 0, unit, 1.0))
+    spread = jnp.sum(
+        jnp.where(present, masses * ((component_std / unit) ** 2 + (deviation / unit) ** 2), 0.0)
+    )
+    return unit * jnp.sqrt(spread)
+
+
+class ColourMixture(eqx.Module):
+    """The colour mixture of a batch of rays: component `j` of a ray has coefficient `pi_j`
+    and, in each channel, a Laplace density with location `mu_jc` and scale `beta_jc`.
+
+    Each method works ray by ray (and channel by channel where it says so) and returns the
+    rays' batch shape in front.
+    """
+
+    coefficients: Float[Array, "*batch num_samples"]
+    location: Float[Array, "*batch num_samples channels"]
+    scale: Float[Array, "*batch num_samples channels"]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return self.coefficients.shape[:-1]
+
+    def _per_ray(self, fn, *extra):
+        return _per_ray(self.batch_shape, fn, self.coefficients, self.location, self.scale, *extra)
+
+    def mean(self) -> Float[Array, "*batch channels"]:
+        """`sum_j pi_j mu_jc`."""
+        return jnp.sum(self.coefficients[..., None] * self.location, axis=-2)
+
+    def std(self) -> Float[Array, "*batch channels"]:
+        """Per-channel standard deviation: `sqrt(sum_j pi_j (2 beta_jc^2 + (mu_jc - mean_c)^2))`."""
+
+        def one_ray(coefficients, location, scale):
+            return jax.vmap(_standard_deviation, in_axes=(None, 1, 1))(
+                coefficients, location, jnp.sqrt(2.0) * scale
+            )
+
+        return self._per_ray(one_ray)
+
+    def cdf(self, rgb: Float[Array, "*batch channels"]) -> Float[Array, "*batch channels"]:
+        """Per-channel distribution function at `rgb`."""
+
+        def one_ray(coefficients, location, scale, x):
+            return jax.vmap(channel_cdf, in_axes=(0, None, 1, 1))(x, coefficients, location, scale)
+
+        return self._per_ray(one_ray, rgb)
+
+    def quantiles(self, levels: Levels) -> Float[Array, "_ *batch channels"]:
+        """Per-channel quantiles at each of `levels` in (0, 1), stacked in front: one batched
+        bisection for every level, channel and ray."""
+        levels_array = _check_levels(levels, self.location.dtype)
+
+        def one_ray(coefficients, location, scale):
+            per_channel = jax.vmap(channel_quantile, in_axes=(None, None, 1, 1))
+            return jax.vmap(per_channel, in_axes=(0, None, None, None))(
+                levels_array, coefficients, location, scale
+            )
+
+        return jnp.moveaxis(self._per_ray(one_ray), len(self.batch_shape), 0)
+
+    def quantile(self, level: ScalarLike) -> Float[Array, "*batch channels"]:
+        """Per-channel quantile at `level` in (0, 1) (`0.5`: the median)."""
+        level = _check_level(level, dtype=self.location.dtype)
+
+        def one_ray(coefficients, location, scale):
+            return jax.vmap(channel_quantile, in_axes=(None, None, 1, 1))(
+                level, coefficients, location, scale
+            )
+
+        return self._per_ray(one_ray)
+
+    def median(self) -> Float[Array, "*batch channels"]:
+        return self.quantile(0.5)
+
+    def interval(
+        self, mass: ScalarLike
+    ) -> tuple[Float[Array, "*batch channels"], Float[Array, "*batch channels"]]:
+        """The central interval of each channel that holds `mass` in (0, 1): from the
+        `(1 - mass) / 2` quantile to the `(1 + mass) / 2` quantile."""
+        mass = _check_level(mass, dtype=self.location.dtype)
+        lower, upper = self.quantiles((0.5 * (1.0 - mass), 0.5 * (1.0 + mass)))
+        return lower, upper
+
+    def log_prob(self, rgb: Float[Array, "*batch channels"]) -> Float[Array, "*batch"]:
+        """The joint log density at `rgb` (no floor: the exact `-NLL`)."""
+
+        def one_ray(coefficients, location, scale, x):
+            return joint_log_density(x, coefficients, location, scale)
+
+        return self._per_ray(one_ray, rgb)
+
+    def mode(self) -> Float[Array, "*batch channels"]:
+        """The mode of the joint RGB density (see `joint_mode`)."""
+        return self._per_ray(joint_mode)
+
+    def coefficient_entropy(self) -> Float[Array, "*batch"]:
+        """`-sum_j pi_j log pi_j` in nats: 0 when one component holds the ray, `log N` when all
+        `N` share it evenly."""
+        present = self.coefficients > 0
+        logs = jnp.log(jnp.where(present, self.coefficients, 1.0))
+        return -jnp.sum(jnp.where(present, self.coefficients * logs, 0.0), axis=-1)
+
+    def with_temperature(self, temperature: ScalarLike) -> "ColourMixture":
+        """The same mixture with every scale multiplied by `temperature` (> 0)."""
+        return ColourMixture(self.coefficients, self.location, _scaled(self.scale, temperature))
+
+
+class TerminationDistribution(eqx.Module):
+    """Where each ray of a batch terminates, given that it does so between its first and last
+    edge: interval `i` holds mass `w_i / sum_m w_m`, spread uniformly over it.
+
+    A ray whose weights all vanish (nothing in front of the far bound) puts all its mass at
+    the far bound, as `expected_depth` and `depth_quantile` report it.
+    """
+
+    weights: Float[Array, "*batch num_samples"]
+    t_edges: Float[Array, "*batch num_samples+1"]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return self.weights.shape[:-1]
+
+    def _per_ray(self, fn):
+        return _per_ray(self.batch_shape, fn, self.weights, self.t_edges)
+
+    def mean(self) -> Float[Array, "*batch"]:
+        """The expected termination distance (`expected_depth`, what the renderer reports)."""
+        return self._per_ray(expected_depth)
+
+    def std(self) -> Float[Array, "*batch"]:
+        """The standard deviation of the termination distance (0 for an empty ray)."""
+
+        def one_ray(weights: PerSample, t_edges: Edges) -> Float[Array, ""]:
+            total = jnp.sum(weights)
+            masses = jnp.where(total > 0, weights / jnp.where(total > 0, total, 1.0), 0.0)
+            centres = 0.5 * (t_edges[1:] + t_edges[:-1])
+            # A uniform density on an interval of width h has standard deviation h / sqrt(12).
+            widths = (t_edges[1:] - t_edges[:-1]) / jnp.sqrt(12.0)
+            return _standard_deviation(masses, centres, widths)
+
+        return self._per_ray(one_ray)
+
+    def quantiles(self, levels: Levels) -> Float[Array, "_ *batch"]:
+        """The termination distance's quantiles at each of `levels` in (0, 1), stacked in
+        front: one batched bisection for every level and ray (`termination_quantile`)."""
+        levels_array = _check_levels(levels, self.weights.dtype)
+
+        def one_ray(weights: PerSample, t_edges: Edges) -> Float[Array, " _"]:
+            return jax.vmap(termination_quantile, in_axes=(0, None, None))(levels_array, weights, t_edges)
+
+        return jnp.moveaxis(self._per_ray(one_ray), len(self.batch_shape), 0)
+
+    def quantile(self, level: ScalarLike) -> Float[Array, "*batch"]:
+        """The `level` quantile of the termination distance (`termination_quantile`, by bisection
+        bracketed by the ray's first and last edge)."""
+        level = _check_level(level, dtype=self.weights.dtype)
+        return self._per_ray(lambda weights, t_edges: termination_quantile(level, weights, t_edges))
+
+    def median(self) -> Float[Array, "*batch"]:
+        return self.quantile(0.5)
+
+    def interval(self, mass: ScalarLike) -> tuple[Float[Array, "*batch"], Float[Array, "*batch"]]:
+        """The central interval that holds `mass` of the termination distance."""
+        mass = _check_level(mass, dtype=self.weights.dtype)
+        lower, upper = self.quantiles((0.5 * (1.0 - mass), 0.5 * (1.0 + mass)))
+        return lower, upper
+
+
+def _is_traced(value) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(value))
+
+
+def _scalar(value, name: str):
+    """`value` as given if it is one real number of any accepted type, else a ValueError."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.number | np.ndarray | jax.Array):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
+    if np.ndim(value) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(value)}")
+    return value
+
+
+def _checked(value, ok, message: str):
+    """`value` if `ok(xp, value)` holds everywhere (`xp`: numpy for a concrete value, jax.numpy
+    for a traced one): else a `ValueError` at once, or, where traced, an error when computed."""
+    if _is_traced(value):
+        return eqx.error_if(value, ~jnp.all(ok(jnp, value)), message)
+    values = np.asarray(value, np.float64)
+    bad = values[~ok(np, values)]  # NaN fails every check
+    if bad.size:
+        raise ValueError(f"{message}, got {bad.tolist()[0] if values.ndim == 0 else bad.tolist()}")
+    return value
+
+
+def _in_unit_interval(dtype):
+    """The check that a level lies in (0, 1), and still does once cast to `dtype` (1e-50 is 0
+    in float32, and 1 - 1e-9 is 1). A level below `dtype`'s smallest normal number is refused
+    too: XLA flushes subnormal numbers to zero on the CPU (1e-44 is 0 there)."""
+    smallest = np.finfo(dtype).tiny
+
+    def ok(xp, x):
+        inside = (x > 0) & (x < 1)
+        cast = xp.asarray(xp.where(inside, x, 0.5), dtype)
+        return inside & (cast >= smallest) & (cast < 1)
+
+    return ok
+
+
+def _finite_positive(dtype):
+    """The check that a number is finite and positive, and still is once cast to `dtype`."""
+
+    def ok(xp, x):
+        good = xp.isfinite(x) & (x > 0)
+        cast = xp.asarray(xp.where(good & (xp.abs(x) < xp.finfo(dtype).max), x, 1.0), dtype)
+        return good & (xp.abs(x) < xp.finfo(dtype).max) & (cast > 0)
+
+    return ok
+
+
+def _level_message(name: str, dtype) -> str:
+    smallest = np.finfo(dtype).tiny
+    return f"{name} must lie in (0, 1), also as a {jnp.dtype(dtype).name} (and be at least {smallest:.3g})"
+
+
+def _check_level(level: ScalarLike, name: str = "a quantile level or interval mass", dtype=None):
+    """`level`, checked to lie in (0, 1) in float64 and in `dtype` (default: JAX's float, the
+    one the distributions compute in) (see `_checked`)."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return _checked(_scalar(level, name), _in_unit_interval(dtype), _level_message(name, dtype))
+
+
+def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
+    """`levels` (a sequence or a 1-d array) as an array, each checked as `_check_level` does."""
+    if isinstance(levels, Sequence) and not isinstance(levels, str):
+        if not levels:
+            raise ValueError("quantile levels must not be empty")
+        return jnp.stack([jnp.asarray(_check_level(level, dtype=dtype), dtype) for level in levels])
+    if not isinstance(levels, np.ndarray | jax.Array) or np.ndim(levels) != 1 or np.shape(levels)[0] == 0:
+        raise ValueError(f"quantile levels must be a non-empty sequence or 1-d array, got {levels!r}")
+    message = _level_message("a quantile level or interval mass", dtype)
+    return jnp.asarray(_checked(levels, _in_unit_interval(dtype), message), dtype)
+
+
+_TEMPERATURE_MESSAGE = "temperature must be a finite positive number"
+
+
+def _check_temperature(temperature: ScalarLike, dtype=None):
+    """`temperature`, checked to be finite and positive, also in `dtype` (default: JAX's
+    float) (see `_checked`)."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    temperature = _scalar(temperature, "temperature")
+    return _checked(temperature, _finite_positive(dtype), _TEMPERATURE_MESSAGE)
+
+
+def _scaled(
+    scale: Float[Array, "*batch num_samples channels"], temperature: ScalarLike
+) -> Float[Array, "*batch num_samples channels"]:
+    """`scale * temperature`, checked to stay finite and positive where `scale` is (a huge or
+    tiny temperature may overflow or underflow the product)."""
+    scaled = scale * _check_temperature(temperature, scale.dtype)
+    message = f"{_TEMPERATURE_MESSAGE} whose product with every scale is too"
+
+    def ok(xp, pair):
+        before, after = pair
+        return ~((before > 0) & xp.isfinite(before)) | (xp.isfinite(after) & (after > 0))
+
+    if _is_traced((scale, scaled)):
+        return eqx.error_if(scaled, ~jnp.all(ok(jnp, (scale, scaled))), message)
+    if not np.all(ok(np, (np.asarray(scale), np.asarray(scaled)))):
+        raise ValueError(f"{message}, got {float(np.asarray(temperature))}")
+    return scaled
+
+
+class Predictive(eqx.Module):
+    """A batch of rays' predictive distributions, with the render they come from.
+
+    **Fields:**
+
+    - `colour`: the colour mixture (the coarse level's by default: where the NLL trains).
+    - `depth`: the termination distance (the fine level's by default: the distribution whose
+      mean is the rendered depth).
+    - `rgb`, `render_depth`, `acc`: the fine level's render, background included.
+    """
+
+    colour: ColourMixture
+    depth: TerminationDistribution
+    rgb: Float[Array, "*batch channels"]
+    render_depth: Float[Array, "*batch"]
+    acc: Float[Array, "*batch"]
+
+
+def _check_bounds(rays: RayBundle) -> RayBundle:
+    """`rays`, checked to have finite bounds with `near <= far` (the sampling interval would
+    otherwise be reversed or unbounded)."""
+    message = "rays must have finite bounds with near <= far"
+
+    def bad(xp, near, far):
+        return ~(xp.isfinite(near) & xp.isfinite(far) & (near <= far))
+
+    if _is_traced((rays.near, rays.far)):
+        flagged = eqx.error_if(rays.near, jnp.any(bad(jnp, rays.near, rays.far)), message)
+        return eqx.tree_at(lambda r: r.near, rays, flagged)
+    near, far = np.asarray(rays.near), np.asarray(rays.far)
+    count = int(np.sum(bad(np, near, far)))
+    if count:
+        raise ValueError(f"{message}: {count} of {math.prod(rays.batch_shape)} rays do not")
+    return rays
+
+
+def colour_mixture(level: LevelOutputs, temperature: ScalarLike = 1.0) -> ColourMixture:
+    """The colour mixture of one level's render (a model with mixture heads), its scales
+    multiplied by `temperature`."""
+    beta = level.field.beta
+    if beta is None:
+        raise ValueError(
+            "this model has no mixture heads (the mip-NeRF baseline): it predicts no distribution"
+        )
+    count = level.weights.shape[-1]
+    flat = level.weights.reshape(-1, count)
+    coefficients = jax.vmap(mixing_coefficients)(flat).reshape(level.weights.shape)
+    return ColourMixture(coefficients, level.field.rgb, _scaled(beta, temperature))
+
+
+def predictive(
+    model: MixNeRF,
+    rays: RayBundle,
+    *,
+    colour_level: str = "coarse",  # "coarse" or "fine": checked below, with a one-line error
+    depth_level: str = "fine",
+    temperature: ScalarLike = 1.0,
+) -> Predictive:
+    """What `model` predicts for `rays` (any batch shape), as distributions.
+
+    One deterministic render (the evaluation render, no density noise) gives both levels;
+    nothing is solved until a quantile or mode is asked for.
+
+    **Arguments:**
+
+    - `model`: a MixNeRF with mixture heads.
+    - `rays`: the rays.
+    - `colour_level`: the level whose per-sample Laplace components form the colour mixture:
+      `"coarse"`, where the colour NLL is trained (the default), or `"fine"` (the same heads
+      read at the fine samples; never trained as a distribution there).
+    - `depth_level`: the level whose weights give the termination distance.
+    - `temperature`: multiplies every scale `beta` (a post-hoc calibration; 1: the model's).
+
+    **Returns:**
+
+    A `Predictive` with `rays.batch_shape` in front.
+    """
+    for name, value in (("colour_level", colour_level), ("depth_level", depth_level)):
+        if value not in ("coarse", "fine"):
+            raise ValueError(f"{name} must be 'coarse' or 'fine', got {value!r}")
+    if model.mixture is None or not model.field.has_mixture_heads:
+        raise ValueError(
+            "this model has no mixture heads (the mip-NeRF baseline): it predicts no distribution"
+        )
+    outputs = model(_check_bounds(rays))
+    colour_from = outputs.coarse if colour_level == "coarse" else outputs.fine
+    depth_from = outputs.coarse if depth_level == "coarse" else outputs.fine
+    return Predictive(
+        colour=colour_mixture(colour_from, temperature),
+        depth=TerminationDistribution(depth_from.weights, depth_from.t_edges),
+        rgb=outputs.fine.rgb,
+        render_depth=outputs.fine.depth,
+        acc=outputs.fine.acc,
+    )
+
+
+class PredictiveSummary(eqx.Module):
+    """The numbers a predictive distribution is read as, for a batch of rays.
+
+    **Fields:**
+
+    - `masses` (static): the masses of the central intervals, in the order of the leading
+      axis of `colour_lower`, `colour_upper`, `depth_lower` and `depth_upper`.
+    - `colour_mean`, `colour_median`, `colour_std`: per channel, of the colour mixture.
+    - `colour_mode`: the mode of the joint RGB density (`None` unless asked for).
+    - `colour_lower`, `colour_upper`: per channel, the central intervals.
+    - `coefficient_entropy`: of the mixing coefficients, in nats.
+    - `depth_mean`, `depth_median`, `depth_std`, `depth_lower`, `depth_upper`: of the
+      termination distance.
+    - `rgb`, `render_depth`, `acc`: the fine level's render.
+    - `log_prob`: the joint colour log density of the given targets (`None` without them).
+    """
+
+    masses: tuple[float, ...] = eqx.field(static=True)
+    colour_mean: Float[Array, "*batch channels"]
+    colour_median: Float[Array, "*batch channels"]
+    colour_std: Float[Array, "*batch channels"]
+    colour_mode: Float[Array, "*batch channels"] | None
+    colour_lower: Float[Array, "_ *batch channels"]
+    colour_upper: Float[Array, "_ *batch channels"]
+    coefficient_entropy: Float[Array, "*batch"]
+    depth_mean: Float[Array, "*batch"]
+    depth_median: Float[Array, "*batch"]
+    depth_std: Float[Array, "*batch"]
+    depth_lower: Float[Array, "_ *batch"]
+    depth_upper: Float[Array, "_ *batch"]
+    rgb: Float[Array, "*batch channels"]
+    render_depth: Float[Array, "*batch"]
+    acc: Float[Array, "*batch"]
+    log_prob: Float[Array, "*batch"] | None
+
+
+DEFAULT_MASSES = (0.5, 0.8, 0.9, 0.95)
+
+
+def summarise(
+    prediction: Predictive,
+    masses: Sequence[ScalarLike] = DEFAULT_MASSES,
+    targets: Float[Array, "*batch channels"] | None = None,
+    *,
+    with_mode: bool = False,
+) -> PredictiveSummary:
+    """Every summary of `prediction` (one batched quantile solve for all channels and
+    levels), with the log density of `targets` if given and, with `with_mode`, the mode of
+    each ray's joint colour density (a search per ray, which costs about as much as the
+    quantiles)."""
+    if isinstance(masses, str) or not isinstance(masses, Sequence) or not masses:
+        raise ValueError(f"masses must be a non-empty sequence of interval masses, got {masses!r}")
+    dtype = prediction.colour.location.dtype
+    masses = tuple(float(_check_level(mass, "an interval mass", dtype=dtype)) for mass in masses)
+    colour, depth = prediction.colour, prediction.depth
+    # One batched solve for every level: the median, then each interval's two ends.
+    levels = (0.5, *(0.5 * (1.0 - mass) for mass in masses), *(0.5 * (1.0 + mass) for mass in masses))
+    colour_quantiles = colour.quantiles(levels)
+    depth_quantiles = depth.quantiles(levels)
+    count = len(masses)
+    return PredictiveSummary(
+        masses=masses,
+        colour_mean=colour.mean(),
+        colour_median=colour_quantiles[0],
+        colour_std=colour.std(),
+        colour_mode=colour.mode() if with_mode else None,
+        colour_lower=colour_quantiles[1 : 1 + count],
+        colour_upper=colour_quantiles[1 + count :],
+        coefficient_entropy=colour.coefficient_entropy(),
+        depth_mean=depth.mean(),
+        depth_median=depth_quantiles[0],
+        depth_std=depth.std(),
+        depth_lower=depth_quantiles[1 : 1 + count],
+        depth_upper=depth_quantiles[1 + count :],
+        rgb=prediction.rgb,
+        render_depth=prediction.render_depth,
+        acc=prediction.acc,
+        log_prob=None if targets is None else colour.log_prob(targets),
+    )

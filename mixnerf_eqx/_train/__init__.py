@@ -1,0 +1,1 @@
+"""Training: the objective, schedules, the state and step, checkpoints, the loop, sweeps."""

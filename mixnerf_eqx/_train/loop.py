@@ -1,0 +1,532 @@
+"""The training loop: a short driver around `TrainState` and the pure step.
+
+`fit` resumes or starts a state, then repeats: draw a batch, take a step, and hand the step's
+outcome to small pieces that each do one thing: `_RunLog` (the loss history and progress bar),
+`_Guard` (stops a run whose steps keep failing), the occupancy-grid update, the periodic
+evaluation and the checkpoints. The final evaluation writes the run's report.
+"""
+
+import contextlib
+import dataclasses
+import json
+import os
+import shutil
+import time
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import numpy as np
+
+from .._config import Config, ConfigError, SettingWarning, config_to_dict, setting_warnings
+from .._inference.evaluation import Evaluation, Rendered, evaluate
+from .._nn.model import MixNeRF
+from .._predictive.uncertainty import predict_views
+from .._util import json_io as strict_json
+from .._util.images import colourise_depth
+from .._util.interrupt import deferred_interrupts, raise_if_interrupted
+from .._util.lock import LOCK_NAME, hold_folder
+from .._util.progress import Progress
+from .._util.tensorboard import TensorBoardLog, check_tensorboard
+from ..data import Dataset, evenly_spaced, load_dataset
+from .checkpoint import (
+    CheckpointError,
+    latest_checkpoint,
+    load_latest_readable,
+    remove_stale_staging,
+    save_checkpoint,
+)
+from .run_folder import (
+    check_resumable,
+    continued_config,
+    grid_for_rendering,
+    make_skipping,
+    render_summary,
+    write_view_renders,
+)
+from .sharding import DataParallel, data_parallel_mesh
+from .state import (
+    StepMetrics,
+    TrainState,
+    draw_batch,
+    init_train_state,
+    make_train_step,
+    occupancy_key,
+    training_rays,
+    update_grid,
+)
+
+
+class TrainingDiverged(RuntimeError):
+    """Too many consecutive steps had a non-finite loss or gradient."""
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What `fit` returns: the final state, its test metrics and where the outputs are."""
+
+    state: TrainState
+    metrics: dict[str, Any]
+    run_dir: Path
+    history: list[dict[str, Any]]
+
+    @property
+    def model(self) -> MixNeRF:
+        return self.state.model
+
+
+def _due(done: int, every: int) -> bool:
+    return every > 0 and done % every == 0
+
+
+def _scalars(metrics: StepMetrics) -> dict[str, float]:
+    terms = metrics.terms
+    values = {"loss": float(terms.total), **{name: float(value) for name, value in terms.values.items()}}
+    values.update(
+        psnr=float(metrics.psnr), lr=float(metrics.learning_rate), lambda_colour=float(metrics.lambda_colour)
+    )
+    return values
+
+
+class _RunLog:
+    """The loss history: `train_log.jsonl` in the run folder, a list, and the progress bar."""
+
+    def __init__(self, run_dir: Path, start: int, total: int, progress: bool, tensorboard: bool = False):
+        self.path = run_dir / "train_log.jsonl"
+        self.tensorboard = TensorBoardLog(run_dir, start) if tensorboard else None
+        # Entries past the checkpoint belong to a run that ended without saving them (a crash
+        # or a kill): the resumed run redoes those steps, so the log keeps one entry per step.
+        self.evaluated = _truncate_log(self.path, start)
+        self.file = open(self.path, "a")  # noqa: SIM115 (closed by `close`)
+        self.history: list[dict[str, Any]] = []
+        self.progress = Progress(total, initial=start, unit="step", enabled=progress)
+        self.timer, self.logged = time.perf_counter(), start
+
+    def step(self, done: int, metrics: StepMetrics, skipped_total: int) -> None:
+        entry = {"step": done, **_scalars(metrics), "skipped_steps": skipped_total}
+        now = time.perf_counter()
+        entry["steps_per_s"] = (done - self.logged) / max(now - self.timer, 1e-9)
+        self.timer, self.logged = now, done
+        self.history.append(entry)
+        self._write(entry)
+        if self.tensorboard is not None:
+            self.tensorboard.step(entry)
+        self.progress.update(
+            done,
+            loss=f"{entry['loss']:.4f}",
+            psnr=f"{entry['psnr']:.2f}",
+            it_s=f"{entry['steps_per_s']:.2f}",
+            skipped=skipped_total,
+        )
+
+    def evaluation(
+        self, done: int, means: dict[str, Any], images: dict[str, np.ndarray] | None = None
+    ) -> None:
+        shown = ", ".join(f"{k} {v:.4f}" for k, v in means.items() if v is not None)
+        self.progress.write(f"step {done}: validation {shown}")
+        self._write({"step": done, "eval": means, "split": "val"})
+        if self.tensorboard is not None:
+            self.tensorboard.evaluation(done, means, images or {})
+        self.evaluated.add(done)
+
+    def _write(self, entry: dict[str, Any]) -> None:
+        # Flushed at once, so that `tail -f` follows the run and a crash loses no entry.
+        self.file.write(strict_json.dumps(entry) + "\n")
+        self.file.flush()
+
+    def sync(self) -> None:
+        """Forces the log to disk (with each checkpoint: a resumed run keeps its history)."""
+        if not self.file.closed:
+            os.fsync(self.file.fileno())
+        if self.tensorboard is not None:
+            self.tensorboard.flush()
+
+    def close(self) -> None:
+        self.progress.close()
+        self.file.close()
+        if self.tensorboard is not None:
+            self.tensorboard.close()
+
+
+def _truncate_log(log_path: Path, last_step: int) -> set[int]:
+    """Drops the entries of `log_path` logged after step `last_step` (none if it is absent),
+    and a last line cut short by a kill; returns the steps that the kept log holds a periodic
+    evaluation of (one pass over the file)."""
+    if not log_path.is_file():
+        return set()
+    lines = log_path.read_text().splitlines()
+    kept, evaluated = [], set()
+    for line in lines:
+        try:
+            entry = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if entry.get("step", 0) <= last_step:
+            kept.append(line)
+            if "eval" in entry:
+                evaluated.add(entry["step"])
+    if len(kept) != len(lines):
+        temporary = log_path.with_suffix(".jsonl.tmp")
+        temporary.write_text("".join(line + "\n" for line in kept))
+        temporary.replace(log_path)
+    return evaluated
+
+
+class _Guard:
+    """Counts the steps whose update was not finite (and so not applied); raises
+    `TrainingDiverged` after `limit` in a row.
+
+    A step's flag is read once the next step is queued (`defer`), so the host does not wait
+    for the device between steps; a step that logs, evaluates or checkpoints is read at once.
+    """
+
+    def __init__(self, limit: int, run_dir: Path):
+        self.limit, self.run_dir = limit, run_dir
+        self.total = self.streak = 0
+        self.pending: tuple[int, Any] | None = None
+
+    def defer(self, done: int, skipped: Any, *, read_now: bool) -> None:
+        if self.pending is not None:
+            self._read(*self.pending)
+        self.pending = (done, skipped)
+        if read_now:
+            self._read(*self.pending)
+            self.pending = None
+
+    def _read(self, done: int, skipped: Any) -> None:
+        if not bool(skipped):
+            self.streak = 0
+            return
+        self.total += 1
+        self.streak += 1
+        if self.streak >= self.limit:
+            last_good = latest_checkpoint(self.run_dir)
+            raise TrainingDiverged(
+                f"step {done}: {self.streak} consecutive steps had a non-finite loss or "
+                f"gradient and were not applied; stopping. The last good checkpoint is "
+                f"{last_good or 'none (no checkpoint was written yet)'}; lower the learning "
+                "rate or check the data, then resume from it."
+            )
+
+
+def _prepare_run_dir(run_dir: Path) -> bool:
+    """Creates the run folder, or says in one line why it cannot be used (before any loading).
+    Returns whether the folder was created here."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"train.run_dir {run_dir} is a file, not a folder; choose another train.run_dir")
+    existed = run_dir.is_dir()
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"cannot create train.run_dir {run_dir}: {error.strerror or error}") from None
+    if not os.access(run_dir, os.W_OK | os.X_OK):
+        raise ConfigError(f"train.run_dir {run_dir} is not writable; choose another train.run_dir")
+    return not existed
+
+
+def _remove_if_unused(run_dir: Path) -> None:
+    """Removes a run folder that this process created and wrote nothing into but its lock."""
+    if run_dir.is_dir() and {p.name for p in run_dir.iterdir()} <= {LOCK_NAME}:
+        shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) -> tuple[Config, TrainState]:
+    """A new state, or the run folder's newest readable checkpoint if it has one; and the
+    config the run goes on with (`continued_config`: more steps keep the decay horizon)."""
+    remove_stale_staging(run_dir)
+    if latest_checkpoint(run_dir) is None:
+        return config, init_train_state(config, dataset)
+    if not resume:
+        raise ConfigError(f"{run_dir} already holds checkpoints; resume, or choose another train.run_dir")
+    chosen = config
+
+    def same_run(path: Path, meta: dict[str, Any]) -> None:
+        nonlocal chosen
+        if meta["step"] > config.train.max_steps:
+            raise ConfigError(
+                f"{path} holds {meta['step']} steps, more than train.max_steps = {config.train.max_steps}"
+            )
+        chosen = continued_config(config, meta["config"])
+        check_resumable(path, meta["config"], chosen)
+
+    found = load_latest_readable(run_dir, init_train_state(config, dataset), check=same_run)
+    if found is None:
+        raise CheckpointError(
+            f"no checkpoint in {run_dir / 'checkpoints'} can be read; move the folder away to start again"
+        )
+    state = found[0]
+    if chosen is not config:
+        print(
+            f"continuing past the {chosen.optim.decay_steps} steps the run began with: the learning "
+            f"rate stays at optim.lr_final = {chosen.optim.lr_final:g} (optim.decay_steps)"
+        )
+        longer = init_train_state(chosen, dataset)
+        state = dataclasses.replace(state, optimizer=longer.optimizer, learning_rate=longer.learning_rate)
+    return chosen, state
+
+
+def _periodic_evaluation(
+    config: Config, dataset: Dataset, state: TrainState, *, with_images: bool = False
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Metrics of `train.num_eval_views` validation views, evenly spaced, without LPIPS: the
+    test views are scored once, at the end. With `with_images`, also the first view's colour,
+    depth, error and (with mixture heads) predictive colour spread, as RGB images."""
+    assert dataset.val is not None
+    ids = evenly_spaced(dataset.val.num_views, min(config.train.num_eval_views, dataset.val.num_views))
+    skipping = None if state.grid is None else make_skipping(config.occupancy, state.grid)
+    chunk = config.train.render_chunk if skipping is None else config.occupancy.chunk
+    images: dict[str, np.ndarray] = {}
+
+    def keep_first(index: int, metrics: dict[str, Any], rendered: Rendered) -> None:
+        if with_images and index == 0:
+            truth = dataset.val.images[ids[0]]
+            images.update(_evaluation_images(rendered, truth, dataset.near, dataset.far))
+
+    means = evaluate(
+        state.model,
+        dataset,
+        chunk=chunk,
+        view_ids=ids,
+        with_lpips=False,
+        skipping=skipping,
+        split="val",
+        on_view=keep_first,
+    ).means
+    if with_images and state.model.field.has_mixture_heads:
+        view = dataset.val.select(ids[:1])
+        maps = predict_views(state.model, view, dataset.near, dataset.far, config.train.render_chunk)
+        images["colour_spread"] = _grey(maps["colour_std"][0].mean(axis=-1) / 0.5)
+    return means, images
+
+
+def _grey(values: np.ndarray) -> np.ndarray:
+    return np.repeat(np.clip(values, 0.0, 1.0)[..., None], 3, axis=-1)
+
+
+def _evaluation_images(
+    rendered: Rendered, truth: np.ndarray, near: float, far: float
+) -> dict[str, np.ndarray]:
+    """One view's colour, depth (coloured from `near` to `far`) and error (white: 0.5 or more)."""
+    return {
+        "colour": rendered.rgb,
+        "depth": colourise_depth(rendered.depth, near, far),
+        "error": _grey(np.abs(rendered.rgb - truth).mean(axis=-1) / 0.5),
+    }
+
+
+def fit(
+    config: Config,
+    *,
+    dataset: Dataset | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    write_renders: bool = True,
+    log_every: int = 10,
+    stop_after: int | None = None,
+) -> TrainResult:
+    """Trains a model as `config` says, with checkpoints, evaluation and renders in its run dir.
+
+    **Arguments:**
+
+    - `config`: the run's configuration; `config.train.run_dir` receives every output.
+    - `dataset`: the scene (default: loaded from `config.data`).
+    - `resume`: continue from the run dir's latest checkpoint if there is one; it must have
+      been written with the same settings (cosmetic ones such as `eval_every` aside).
+      `False` refuses to start in a run dir that holds checkpoints.
+    - `progress`: show a progress bar.
+    - `write_renders`: write PNG renders of the test views at the end.
+    - `log_every`: steps between entries of the loss history (and bar updates).
+    - `stop_after`: stop (with a checkpoint) after this step, as if interrupted; for tests.
+
+    **Returns:**
+
+    A `TrainResult` with the final test metrics (also written to `metrics.json`).
+    """
+    for message in setting_warnings(config):
+        warnings.warn(message, SettingWarning, stacklevel=2)
+    if "tensorboard" in config.train.log_to:
+        check_tensorboard()  # before anything is loaded, built or written
+    run_dir = Path(config.train.run_dir)
+    created = _prepare_run_dir(run_dir)
+    # One writer per run folder: a second `fit` on it fails here, before touching it (and never
+    # removes it: the folder may be the other writer's, just created).
+    with hold_folder(run_dir):
+        try:
+            return _fit_holding(
+                config, run_dir, dataset, resume, progress, write_renders, log_every, stop_after
+            )
+        except BaseException:
+            if created:
+                _remove_if_unused(run_dir)
+            raise
+
+
+def _fit_holding(
+    config: Config,
+    run_dir: Path,
+    dataset: Dataset | None,
+    resume: bool,
+    progress: bool,
+    write_renders: bool,
+    log_every: int,
+    stop_after: int | None,
+) -> TrainResult:
+    """`fit`, once the run folder is this process's."""
+    train = config.train
+    dataset = load_dataset(config.data) if dataset is None else dataset
+    config, state = _start_state(config, dataset, run_dir, resume)
+    config_dict = config_to_dict(config)
+    (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
+    start = int(state.step)
+    last_step = train.max_steps if stop_after is None else min(train.max_steps, stop_after)
+    data, take_step = training_rays(dataset, config.loss), make_train_step(config, max_traces=1)
+    draw = eqx.filter_jit(draw_batch)
+    mesh = data_parallel_mesh(train.data_parallel, train.batch_size)
+    if mesh is not None:
+        # The same step, its batch split over the devices; state and rays on every device.
+        parallel = DataParallel(mesh)
+        state, data = parallel.replicate(state), parallel.replicate(data)
+        take_step, draw = parallel.step(take_step), parallel.draw(draw_batch)
+    eval_every = train.eval_every
+    if eval_every and dataset.val is None:
+        print(f"no periodic evaluation: {dataset.name} has no validation views ({dataset.val_source})")
+        eval_every = 0
+    images = "tensorboard" in train.log_to
+    log = _RunLog(run_dir, start, train.max_steps, progress, tensorboard=images)
+    guard = _Guard(train.max_nonfinite_steps, run_dir)
+    try:
+        # Ctrl-C stops the loop only between steps or between chunks of a render, so the
+        # state saved holds exactly the steps it is named after.
+        with deferred_interrupts():
+            if start and _due(start, eval_every) and start < train.max_steps and start not in log.evaluated:
+                # The step resumed from is due an evaluation that the log lacks: a Ctrl-C during
+                # it checkpointed the step without it (a kill leaves an older checkpoint, and the
+                # loop redoes the step and its evaluation), or eval_every changed since.
+                log.evaluation(start, *_periodic_evaluation(config, dataset, state, with_images=images))
+                raise_if_interrupted()
+            for done in range(start + 1, last_step + 1):
+                state, metrics = take_step(state, draw(data, state, train.batch_size))
+                evaluate_now = _due(done, eval_every) and done < train.max_steps
+                checkpoint_now = _due(done, train.checkpoint_every)
+                log_now = _due(done, log_every) or done == last_step
+                guard.defer(done, metrics.skipped, read_now=log_now or evaluate_now or checkpoint_now)
+                if log_now:
+                    log.step(done, metrics, guard.total)
+                if state.grid is not None and _due(done, config.occupancy.update_every):
+                    state = update_grid(state, config.occupancy)
+                if evaluate_now:
+                    log.evaluation(done, *_periodic_evaluation(config, dataset, state, with_images=images))
+                # No checkpoint inside a run of skipped steps: the last good one must stay the
+                # newest, so that a diverging run can be resumed from before the trouble began.
+                if checkpoint_now and not guard.streak:
+                    save_checkpoint(run_dir, state, config=config_dict)
+                    log.sync()
+                raise_if_interrupted()
+    except KeyboardInterrupt:
+        log.close()
+        path = save_checkpoint(run_dir, state, config=config_dict)
+        print(f"\ninterrupted: checkpoint of step {int(state.step)} written to {path}; run again to resume")
+        raise
+    finally:
+        log.close()
+    done = int(state.step)
+    if done != start or latest_checkpoint(run_dir) is None:
+        save_checkpoint(run_dir, state, config=config_dict)
+    metrics = {"step": done, "skipped_steps": guard.total}
+    if done >= train.max_steps:
+        with _rendering_after_training(done, run_dir):
+            metrics = _final_report(config, dataset, state, run_dir, write_renders, metrics, progress)
+    return TrainResult(state=state, metrics=metrics, run_dir=run_dir, history=log.history)
+
+
+@contextlib.contextmanager
+def _rendering_after_training(step: int, run_dir: Path) -> Iterator[None]:
+    """Ctrl-C while the test views render ends with a word on what is already safe."""
+    try:
+        with deferred_interrupts():
+            yield
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted while rendering the test views; the checkpoint of step {step} is "
+            f"saved: python -m mixnerf_eqx.eval {run_dir} renders and scores it"
+        )
+        raise
+
+
+def _final_report(
+    config: Config,
+    dataset: Dataset,
+    state: TrainState,
+    run_dir: Path,
+    write_renders: bool,
+    metrics: dict[str, Any],
+    progress: bool,
+) -> dict[str, Any]:
+    """Scores every validation view, renders and scores every test view, writes
+    `metrics.json` (and the test views' PNGs)."""
+    renders, staging = run_dir / "renders", run_dir / "renders.partial"
+    # The PNGs go to a staging folder that replaces `renders/` only once every view is written:
+    # an interrupted final evaluation leaves the run folder as it was.
+    shutil.rmtree(staging, ignore_errors=True)
+    bar = Progress(dataset.test.num_views, unit="view", enabled=progress)
+
+    def write_view(index: int, entry: dict[str, Any], rendered: Rendered) -> None:
+        bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
+        if write_renders:
+            truth = dataset.test.images[index]
+            write_view_renders(staging, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
+
+    grid = skipping = choice = None
+    if state.grid is not None:
+        grid, choice = grid_for_rendering(
+            config.occupancy,
+            dataset,
+            state.model,
+            key=occupancy_key(state.key, int(state.step) + 1),
+            grid=state.grid,
+        )
+        skipping = make_skipping(config.occupancy, grid)
+    chunk = config.train.render_chunk if skipping is None else config.occupancy.chunk
+    validation = None
+    if dataset.val is not None:
+        # Scored before the test views and written beside them: what later choices of
+        # settings read (`benchmarks/`, sweeps), so that the test views choose nothing.
+        validation = evaluate(state.model, dataset, chunk=chunk, skipping=skipping, split="val").means
+    try:
+        result: Evaluation = evaluate(
+            state.model, dataset, chunk=chunk, on_view=write_view, skipping=skipping
+        )
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    finally:
+        bar.close()
+    metrics = {
+        **metrics,
+        "scene": dataset.name,
+        "val": validation,
+        "val_views": {
+            "count": 0 if dataset.val is None else dataset.val.num_views,
+            "source": dataset.val_source,
+        },
+        "test": result.means,
+        "per_view": result.per_view,
+        "render": render_summary(result.counts, result.seconds, len(result.per_view), grid, choice),
+        "config": config_to_dict(config),
+    }
+    if write_renders:
+        staging.mkdir(exist_ok=True)
+        shutil.rmtree(renders, ignore_errors=True)
+        staging.replace(renders)
+    _write_replacing(run_dir / "metrics.json", strict_json.dumps(metrics, indent=2))
+    return metrics
+
+
+def _write_replacing(path: Path, text: str) -> None:
+    """Writes `path` under a staging name and renames it into place: a reader sees the old
+    file or the new one, never half of one."""
+    staging = path.with_name(path.name + ".partial")
+    staging.write_text(text)
+    os.replace(staging, path)

@@ -1,0 +1,363 @@
+"""The training state and the pure training step.
+
+`init_train_state` builds everything a run starts from (model, optimiser state, step, key,
+occupancy grid) as one `TrainState` Module; `make_train_step` returns the jitted function
+`(state, batch) -> (state, metrics)`. The training loop (`fit`), the evaluation command, the
+notebook and the benchmarks all start from these two, as MultiNeRF's train, eval and render
+scripts share one `setup_model`.
+"""
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, Bool, Float, Int, PyTree
+
+from .._config import Config, LossConfig, OccupancyConfig, OptimConfig, schedule_steps
+from .._custom_types import PoseStack, PRNGKey
+from .._inference.camera_path import orbit_path, spiral_path
+from .._inference.occupancy import OccupancyGrid, empty_grid, frustum_box, update_occupancy
+from .._nn.model import MixNeRF, build_model
+from .._nn.rays import Box, RayBundle, radius_box
+from ..data import Dataset, rays_at_poses, rays_for_views
+from .loss import LossTerms, LossWeights, loss_fn, needs_patches
+from .schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
+
+
+def make_optimizer(optim: OptimConfig, learning_rate: optax.Schedule) -> optax.GradientTransformation:
+    """Element-wise clip, global-norm clip, then Adam on `learning_rate`.
+
+    `learning_rate` is indexed by step number, counting from 1 as the released code does;
+    Adam's `count` is the number of updates already applied, so update `count` uses the
+    learning rate of step `count + 1`.
+    """
+
+    def by_update(count: Int[Array, ""]) -> Float[Array, ""]:
+        return learning_rate(count + 1)
+
+    parts = []
+    if optim.grad_max_value > 0:
+        parts.append(optax.clip(optim.grad_max_value))
+    if optim.grad_max_norm > 0:
+        parts.append(optax.clip_by_global_norm(optim.grad_max_norm))
+    parts.append(optax.adam(by_update))
+    return optax.chain(*parts)
+
+
+def scene_box(dataset: Dataset) -> Box:
+    """The box of the training rays between near and far (in NDC for LLFF scenes), grown by
+    1% on every side: every sample a training ray can place lies inside."""
+    low, high = frustum_box(rays_for_views(dataset.train, dataset.near, dataset.far))
+    return tuple(float(v) for v in low), tuple(float(v) for v in high)
+
+
+def make_occupancy_grid(occupancy: OccupancyConfig, dataset: Dataset) -> OccupancyGrid:
+    """An unevaluated grid for `dataset` as `occupancy` says.
+
+    With `occupancy.box_radius > 0` the grid spans `[-r, r]^3` and the scene is taken to lie
+    inside it; otherwise it spans the box of the training rays between near and far (in NDC
+    for LLFF scenes) and points outside it count as occupied.
+    """
+    box = radius_box(occupancy.box_radius)
+    outside_occupied = box is None
+    box_min, box_max = scene_box(dataset) if box is None else box
+    return empty_grid(
+        box_min,
+        box_max,
+        resolution=occupancy.resolution,
+        threshold=occupancy.density_threshold,
+        dilation=occupancy.dilation,
+        outside_occupied=outside_occupied,
+    )
+
+
+class TrainState(eqx.Module):
+    """Everything a training run carries from one step to the next.
+
+    **Fields:**
+
+    - `model`: the model being trained.
+    - `opt_state`: the optimiser's state.
+    - `step`: steps taken so far (a step whose update was not finite counts, unapplied).
+    - `key`: the run's training key; step `s` draws its randomness from `fold_in(key, s)`.
+    - `grid`: the occupancy grid kept during training, or `None`.
+    - `optimizer` (static): the gradient transformation.
+    - `learning_rate` (static): the learning rate by step number (from 1).
+    """
+
+    model: MixNeRF
+    opt_state: PyTree
+    step: Int[Array, ""]
+    key: PRNGKey
+    grid: OccupancyGrid | None
+    optimizer: optax.GradientTransformation = eqx.field(static=True)
+    learning_rate: optax.Schedule = eqx.field(static=True)
+
+
+def init_key(config: Config) -> PRNGKey:
+    """The root random key of a run (`train.seed`)."""
+    return jax.random.key(config.train.seed)
+
+
+# One compiled program draws every initial parameter (the config, frustum and box are static,
+# so a process compiles it once per setting): run op by op, each initialiser of another shape
+# compiled on its own, about 4 s of a CPU run's start, none of it in the persistent cache.
+_build_model_compiled = eqx.filter_jit(build_model)
+
+
+def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = None) -> TrainState:
+    """The state a run starts from.
+
+    **Arguments:**
+
+    - `config`: the run's configuration.
+    - `dataset`: the scene (its frustum shape, background and, for the occupancy grid, the
+      training rays' box).
+    - `key`: the root key; default `init_key(config)`. It is split into the model's
+      initialisation key and the run's training key.
+
+    **Returns:**
+
+    A `TrainState` at step 0.
+    """
+    model_key, train_key = jax.random.split(init_key(config) if key is None else key)
+    model = _build_model_compiled(
+        config,
+        key=model_key,
+        frustum=dataset.frustum,
+        white_background=dataset.white_background,
+        scene_box=scene_box(dataset),
+    )
+    optim = config.optim
+    horizon = optim.decay_steps or config.train.max_steps
+    learning_rate = learning_rate_schedule(
+        optim.lr_init, optim.lr_final, horizon, schedule_steps(config).warmup
+    )
+    optimizer = make_optimizer(optim, learning_rate)
+    grid = make_occupancy_grid(config.occupancy, dataset) if config.occupancy.enabled else None
+    return TrainState(
+        model=model,
+        opt_state=optimizer.init(eqx.filter(model, eqx.is_array)),
+        step=jnp.asarray(0, jnp.int32),
+        key=train_key,
+        grid=grid,
+        optimizer=optimizer,
+        learning_rate=learning_rate,
+    )
+
+
+class TrainingRays(eqx.Module):
+    """Every training pixel's ray and colour, on the device, grouped by image, and the pool of
+    unseen-view patches that the depth-smoothness prior draws from (`None` without it)."""
+
+    rays: RayBundle
+    rgb: Float[Array, "num_views num_pixels channels"]
+    patches: RayBundle | None = None
+    patches_per_step: int = eqx.field(static=True, default=0)
+
+
+def unseen_cameras(dataset: Dataset, num_views: int) -> PoseStack:
+    """Cameras no training image was taken from, for the priors on unseen views: a spiral
+    around the training cameras for forward-facing (NDC) scenes, otherwise an orbit at their
+    mean distance and elevation (`mixnerf_eqx._inference.camera_path`). Built from the training poses
+    alone."""
+    poses = np.asarray(dataset.train.camtoworlds, np.float64)
+    path = spiral_path(poses, num_views) if dataset.train.ndc else orbit_path(poses, num_views)
+    return path.astype(np.float32)
+
+
+def unseen_patches(
+    dataset: Dataset, num_views: int, patch_size: int, patches_per_view: int = 16, seed: int = 0
+) -> RayBundle:
+    """A pool of square patches of rays from `unseen_cameras`, `patches_per_view` at random
+    places in each, with the training views' image size, intrinsics and ray space.
+
+    **Returns:**
+
+    A `RayBundle` of batch shape `(num_views * patches_per_view, patch_size, patch_size)`.
+    """
+    train = dataset.train
+    if patch_size > min(train.height, train.width):
+        raise ValueError(
+            f"loss.smoothness_patch_size {patch_size} exceeds the training images "
+            f"({train.height}x{train.width})"
+        )
+    rng = np.random.default_rng(seed)
+    offsets = np.arange(patch_size)
+    pool = []
+    for pose in unseen_cameras(dataset, num_views):
+        rays = rays_at_poses(train, pose[None], dataset.near, dataset.far)
+        rows = rng.integers(0, train.height - patch_size + 1, patches_per_view)
+        cols = rng.integers(0, train.width - patch_size + 1, patches_per_view)
+        index = (
+            0,
+            (rows[:, None, None] + offsets[None, :, None]),
+            (cols[:, None, None] + offsets[None, None, :]),
+        )
+        pool.append(jax.tree_util.tree_map(lambda leaf, index=index: leaf[index], rays))
+    return jax.tree_util.tree_map(lambda *leaves: jnp.concatenate(leaves), *pool)
+
+
+def training_rays(dataset: Dataset, loss: LossConfig | None = None) -> TrainingRays:
+    """Builds the device-resident ray table of the training views (and, when `loss` turns
+    the depth-smoothness prior on, its pool of unseen-view patches)."""
+    views = dataset.train
+    rays = rays_for_views(views, dataset.near, dataset.far)
+    num_pixels = views.height * views.width
+    patches, per_step = None, 0
+    if loss is not None and needs_patches(loss):
+        patches = unseen_patches(dataset, loss.smoothness_views, loss.smoothness_patch_size)
+        per_step = loss.smoothness_patches
+    return TrainingRays(
+        rays=rays.reshape(views.num_views, num_pixels),
+        rgb=jnp.asarray(views.images.reshape(views.num_views, num_pixels, 3), jnp.float32),
+        patches=patches,
+        patches_per_step=per_step,
+    )
+
+
+class Batch(eqx.Module):
+    """The rays of one training step and their true colours, and the unseen-view patches of
+    the depth-smoothness prior (flattened, `None` without it)."""
+
+    rays: RayBundle
+    rgb: Float[Array, "batch channels"]
+    patches: RayBundle | None = None
+
+
+def _step_keys(state: TrainState) -> tuple[PRNGKey, PRNGKey]:
+    """The batch key and the render key of the step `state` is about to take."""
+    batch_key, render_key = jax.random.split(jax.random.fold_in(state.key, state.step))
+    return batch_key, render_key
+
+
+def draw_batch(data: TrainingRays, state: TrainState, batch_size: int) -> Batch:
+    """`batch_size` random pixels (with replacement) of one random training image, drawn
+    with the randomness of the step `state` is about to take, and `data.patches_per_step`
+    random patches of the unseen-view pool."""
+    batch_key = _step_keys(state)[0]
+    image_key, pixel_key = jax.random.split(batch_key)
+    num_images, num_pixels = data.rgb.shape[:2]
+    image = jax.random.randint(image_key, (), 0, num_images)
+    pixels = jax.random.randint(pixel_key, (batch_size,), 0, num_pixels)
+    rays = jax.tree_util.tree_map(lambda x: x[image][pixels], data.rays)
+    patches = None
+    if data.patches is not None:
+        # A key of its own, so that a run without patches draws exactly the pixels it always did.
+        patch_key = jax.random.fold_in(batch_key, 1)
+        chosen = jax.random.randint(patch_key, (data.patches_per_step,), 0, data.patches.batch_shape[0])
+        patches = jax.tree_util.tree_map(lambda x: x[chosen], data.patches)
+        patches = patches.reshape(-1)
+    return Batch(rays=rays, rgb=data.rgb[image][pixels], patches=patches)
+
+
+class StepMetrics(eqx.Module):
+    """What one training step reports."""
+
+    terms: LossTerms
+    psnr: Float[Array, ""]
+    learning_rate: Float[Array, ""]
+    lambda_colour: Float[Array, ""]
+    skipped: Bool[Array, ""]
+
+
+def _all_finite(tree: Any) -> Bool[Array, ""]:
+    leaves = [
+        jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(eqx.filter(tree, eqx.is_array))
+    ]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def make_train_step(
+    config: Config, *, max_traces: int | None = None
+) -> Callable[[TrainState, Batch], tuple[TrainState, StepMetrics]]:
+    """The jitted training step `(state, batch) -> (state, metrics)`.
+
+    The step is pure: the schedules are evaluated at step number `state.step + 1` (steps
+    count from 1), its randomness comes from `fold_in(state.key, state.step)`, and a step
+    whose loss or gradients are not finite leaves the model and the optimiser state exactly
+    as they were (only `step` advances, so the next step draws another batch). With
+    `max_traces`, tracing more often than that raises (a guard against recompiles).
+    """
+    weights = LossWeights.from_config(config.loss, config.method)
+    loss_cfg, train_cfg = config.loss, config.train
+    lengths = schedule_steps(config)
+
+    def train_step(state: TrainState, batch: Batch) -> tuple[TrainState, StepMetrics]:
+        step_number = state.step + 1
+        rays = anneal_sample_space(
+            batch.rays, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
+        )
+        lambda_colour = linear_ramp(
+            step_number,
+            loss_cfg.lambda_colour_start,
+            loss_cfg.lambda_colour_end,
+            lengths.lambda_colour,
+        )
+
+        def scheduled_loss(model: MixNeRF, *args, **kwargs):
+            # The field as this step sees it (a grid's coarse-to-fine levels); the stored
+            # model keeps the whole field.
+            model = eqx.tree_at(lambda m: m.field, model, model.field.at_step(step_number))
+            return loss_fn(model, *args, **kwargs)
+
+        patches = batch.patches
+        if patches is not None:
+            patches = anneal_sample_space(
+                patches, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
+            )
+        (_, terms), grads = eqx.filter_value_and_grad(scheduled_loss, has_aux=True)(
+            state.model, rays, batch.rgb, lambda_colour, weights, key=_step_keys(state)[1], patches=patches
+        )
+        params = eqx.filter(state.model, eqx.is_array)
+        updates, new_opt_state = state.optimizer.update(grads, state.opt_state, params)
+        new_model = eqx.apply_updates(state.model, updates)
+        finite = jnp.isfinite(terms.total) & _all_finite(grads)
+        model, opt_state = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(finite, new, old) if eqx.is_array(new) else new,
+            (new_model, new_opt_state),
+            (state.model, state.opt_state),
+        )
+        metrics = StepMetrics(
+            terms=terms,
+            psnr=-10.0 * jnp.log10(terms["mse_fine"]),
+            learning_rate=state.learning_rate(step_number),
+            lambda_colour=lambda_colour,
+            skipped=~finite,
+        )
+        state = eqx.tree_at(lambda s: (s.model, s.opt_state, s.step), state, (model, opt_state, step_number))
+        return state, metrics
+
+    if max_traces is not None:
+        train_step = eqx.debug.assert_max_traces(train_step, max_traces=max_traces)
+    return eqx.filter_jit(train_step)
+
+
+def occupancy_key(key: PRNGKey, step: Int[Array, ""] | int) -> PRNGKey:
+    """The randomness of the occupancy grid's work at `step` (its updates, and the final
+    render's threshold calibration at `step + 1`): a stream apart from the steps' own."""
+    return jax.random.fold_in(jax.random.fold_in(key, 0x0CC), step)
+
+
+@eqx.filter_jit
+def update_grid(state: TrainState, occupancy: OccupancyConfig) -> TrainState:
+    """`state` with `occupancy.update_fraction` of its grid's cells re-evaluated.
+
+    Meant for every `occupancy.update_every`-th step; the cells visited rotate with the
+    step, so every cell is visited once in `1 / update_fraction` updates.
+    """
+    if state.grid is None:
+        return state
+    grid = update_occupancy(
+        state.grid,
+        state.model.field,
+        key=occupancy_key(state.key, state.step),
+        decay=occupancy.decay,
+        fraction=occupancy.update_fraction,
+        offset=state.step // occupancy.update_every,
+    )
+    return eqx.tree_at(lambda s: s.grid, state, grid)

@@ -1,0 +1,1 @@
+"""Utilities every layer may use: the allocator, Ctrl-C, folder locks, files, progress, shape checks."""

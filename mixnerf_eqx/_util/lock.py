@@ -1,0 +1,88 @@
+"""One writer per folder: an advisory lock that a training run (or a sweep) holds on its folder.
+
+`hold_folder(path)` takes an exclusive `flock` on `path/.lock` for as long as the block runs.
+The kernel releases it when the holder exits in any way (return, exception, Ctrl-C, `kill -9`),
+so a lock is never stale: a folder whose owner is gone can be taken at once. A second
+writer fails at the start, before touching anything, with a `FolderBusyError` naming the
+holder (its pid, host and start time, which the holder writes into the lock file). Readers
+(`eval`, `render`) take no lock: checkpoints and metrics are written to a staging name and
+renamed into place, so a reader sees the old file or the new one, never half of one.
+
+Where `fcntl` does not exist (Windows), the lock is a no-op and says so once.
+"""
+
+import contextlib
+import datetime
+import os
+import socket
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+from .._config import ConfigError
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Linux or macOS
+    fcntl = None
+
+LOCK_NAME = ".lock"
+
+
+class FolderBusyError(ConfigError):
+    """Another process is writing to the folder."""
+
+
+def _holder(handle) -> str:
+    handle.seek(0)
+    text = handle.read().strip()
+    return text or "a process that has not yet said who it is"
+
+
+@contextlib.contextmanager
+def hold_folder(folder: str | Path, what: str = "run", option: str = "train.run_dir") -> Iterator[Path]:
+    """Holds the exclusive lock of `folder` (created if missing) for the block.
+
+    **Arguments:**
+
+    - `folder`: the folder one process writes to.
+    - `what`, `option`: named in the error (`"run"`, `"train.run_dir"`; a sweep: `"sweep"`,
+      `"--out"`).
+
+    **Raises:**
+
+    `FolderBusyError` when another process holds it.
+    """
+    folder = Path(folder)
+    path = folder / LOCK_NAME
+    if fcntl is None:  # pragma: no cover
+        warnings.warn(
+            f"no file locks on this system: nothing stops a second writer in {folder}", stacklevel=3
+        )
+        yield path
+        return
+    handle = open(path, "a+")  # noqa: SIM115 - held open for the block
+    try:
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FolderBusyError(
+                f"{folder} is in use by another {what} ({_holder(handle)}). Wait for it to end, stop "
+                f"it, or choose another {option}."
+            ) from None
+        started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()} on {socket.gethostname()}, since {started}\n")
+        handle.flush()
+        try:
+            yield path
+        finally:
+            # Emptied, not removed: removing it would let a third process lock a new file
+            # while a second one waits on the old one.
+            handle.seek(0)
+            handle.truncate()
+            handle.flush()
+            fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+    finally:
+        handle.close()

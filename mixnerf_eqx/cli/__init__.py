@@ -1,0 +1,1 @@
+"""The command lines, `python -m mixnerf_eqx.<verb>` (train, eval, render, sweep)."""

@@ -1,0 +1,269 @@
+"""Evaluate a run: `python -m mixnerf_eqx.eval RUN_DIR [--checkpoint DIR] [--data-dir DIR] [...]`.
+
+Loads the run's config and its latest (or the given) checkpoint, renders the test views one at
+a time in chunks of rays (memory stays bounded whatever the resolution), writes per-image and
+mean metrics to `RUN_DIR/eval/metrics.json` with colour and depth PNGs beside it, and prints a
+table. LPIPS needs the optional `lpips` extra; without it LPIPS is reported as unavailable.
+With `--uncertainty` it also writes the predictive distribution's spread beside the error maps,
+the arrays in `uncertainty.npz`, and the calibration measures (`docs/predictive.md`). Last, it
+draws the run's training curves from its log into `RUN_DIR/curves.png` (with matplotlib).
+"""
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from .._config import ConfigError
+from .._inference.evaluation import Rendered, evaluate
+from .._predictive.uncertainty import calibration_report, predict_views, write_uncertainty_maps
+from .._train.run_folder import (
+    Run,
+    grid_for_rendering,
+    make_skipping,
+    render_summary,
+    restore_run,
+    write_view_renders,
+)
+from .._util import json_io as strict_json
+from .._util.compilation_cache import add_compilation_cache_argument
+from .._util.curves import plot_curves
+from .._util.progress import Progress
+from .._util.typecheck import add_typecheck_argument
+from ..data import evenly_spaced
+from ..metrics import lpips_available
+from .common import add_skipping_argument, run_command
+
+METRIC_COLUMNS = ("psnr", "ssim", "lpips", "average", "depth_mae")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.eval", description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "run_dir", type=Path, help="a training run's folder (holds config.json, checkpoints/)"
+    )
+    parser.add_argument("--checkpoint", type=Path, default=None, help="checkpoint folder (default: latest)")
+    parser.add_argument(
+        "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
+    )
+    parser.add_argument(
+        "--chunk", type=int, default=None, help="rays rendered at once, at most a view's (default: the run's)"
+    )
+    parser.add_argument(
+        "--split",
+        choices=("test", "val"),
+        default="test",
+        help="the views to score: the protocol's test views (scored once, for the record), or the "
+        "validation views that settings are chosen on (default: test)",
+    )
+    parser.add_argument(
+        "--max-views",
+        type=int,
+        default=0,
+        help="evaluate this many of the split's views, evenly spaced (0: all)",
+    )
+    add_skipping_argument(parser)
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default: RUN_DIR/eval, or RUN_DIR/eval_val for --split val)",
+    )
+    parser.add_argument("--no-renders", action="store_true", help="write no PNGs")
+    parser.add_argument(
+        "--uncertainty",
+        action="store_true",
+        help="also write the predictive distribution's spread (PNGs beside the error maps, arrays in "
+        "uncertainty.npz) and its calibration against the true pixels (docs/predictive.md)",
+    )
+    parser.add_argument(
+        "--temperature",
+        type=float,
+        default=None,
+        help="with --uncertainty: multiply every beta by this factor (a post-hoc calibration; default 1)",
+    )
+    parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
+    add_typecheck_argument(parser)
+    add_compilation_cache_argument(parser)
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return parser.parse_intermixed_args(argv)
+
+
+def format_table(per_view: list[dict], means: dict) -> str:
+    """A plain-text table of the per-view metrics and their means."""
+    columns = [name for name in METRIC_COLUMNS if name in means]
+
+    def cell(value) -> str:
+        return "n/a" if value is None else f"{value:.4f}"
+
+    header = f"{'view':>8} " + " ".join(f"{name:>10}" for name in columns)
+    lines = [header, "-" * len(header)]
+    lines += [
+        f"{entry['view']:>8} " + " ".join(f"{cell(entry[n]):>10}" for n in columns) for entry in per_view
+    ]
+    lines += ["-" * len(header), f"{'mean':>8} " + " ".join(f"{cell(means[n]):>10}" for n in columns)]
+    return "\n".join(lines)
+
+
+def _skipping_for(run: Run, mode: str):
+    """The grid, skipping options and calibration choice `--skipping` asks for, and its time."""
+    started = time.perf_counter()
+    config = run.config
+    if not (mode == "on" or (mode == "auto" and config.occupancy.enabled)):
+        return None, None, None, 0.0
+    grid, choice = grid_for_rendering(
+        config.occupancy, run.dataset, run.model, key=jax.random.fold_in(run.state.key, run.step)
+    )
+    return grid, make_skipping(config.occupancy, grid), choice, time.perf_counter() - started
+
+
+def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None:
+    print(format_table(result["per_view"], result["mean"]))
+    print(
+        f"\n{result['scene']}, step {result['step']}, {result['num_views']} views in "
+        f"{result['seconds']:.1f} s; LPIPS {result['lpips']}"
+    )
+    render = result["render"]
+    if grid is not None:
+        how = "calibrated" if choice is not None else "from the config"
+        if choice is not None and not choice.within_tolerance:
+            how += f", no threshold kept the bound within {choice.tolerance_db} dB"
+        print(
+            f"skipping: density threshold {float(grid.threshold):.4g} ({how}), "
+            f"{render['occupied_fraction']:.1%} of the grid occupied, "
+            f"{render['field_evaluations_per_frame']:.0f} field evaluations per frame instead of "
+            f"{render['dense_evaluations_per_frame']:.0f} ({render['evaluation_reduction']:.2f}x fewer)"
+        )
+    if "uncertainty" in result:
+        report = result["uncertainty"]
+        coverage = ", ".join(f"{mass}: {value['mean']:.3f}" for mass, value in report["coverage"].items())
+        depth = "n/a" if report["depth_ause"] is None else f"{report['depth_ause']:.4f}"
+        print(
+            f"uncertainty: interval coverage ({coverage}), held-out NLL {report['nll']:.3f} per pixel, "
+            f"AUSE colour {report['colour_ause']:.4f}, depth {depth}; "
+            f"{report['seconds_per_frame']:.2f} s per frame; arrays: {out / 'uncertainty.npz'}"
+        )
+    print(f"metrics: {out / 'metrics.json'}")
+    if renders:
+        print(f"renders: {out}")
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Evaluates as `args` say and returns what was written to `metrics.json`."""
+    run_dir = args.run_dir
+    restored = restore_run(run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
+    config, dataset = restored.config, restored.dataset
+    grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
+    chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
+    try:
+        views = dataset.split(args.split)
+    except ValueError as error:
+        raise SystemExit(f"error: {error}") from None
+    view_ids = None
+    if args.max_views > 0:
+        view_ids = evenly_spaced(views.num_views, min(args.max_views, views.num_views))
+    num_views = views.num_views if view_ids is None else len(view_ids)
+    out = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
+    out.mkdir(parents=True, exist_ok=True)
+    bar = Progress(num_views, unit="view", enabled=not args.no_progress)
+    chosen = views if view_ids is None else views.select(view_ids)
+
+    def after_view(index: int, entry: dict, rendered: Rendered) -> None:
+        if not args.no_renders:
+            truth = chosen.images[index]
+            write_view_renders(out, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
+        bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
+
+    try:
+        evaluation = evaluate(
+            restored.model,
+            dataset,
+            chunk=chunk,
+            view_ids=view_ids,
+            with_lpips=not args.no_lpips,
+            on_view=after_view,
+            skipping=skipping,
+            split=args.split,
+        )
+    finally:
+        bar.close()
+    render = render_summary(evaluation.counts, evaluation.seconds, num_views, grid, choice)
+    render["grid_seconds"] = grid_seconds
+    lpips_note = "computed"
+    if args.no_lpips:
+        lpips_note = "skipped (--no-lpips)"
+    elif not lpips_available():
+        lpips_note = "unavailable: install the lpips extra (pip install -e '.[lpips]')"
+    result = {
+        "run_dir": str(run_dir),
+        "checkpoint": str(restored.checkpoint),
+        "step": restored.step,
+        "scene": dataset.name,
+        "split": args.split,
+        "num_views": num_views,
+        "lpips": lpips_note,
+        "seconds": evaluation.seconds + grid_seconds,
+        "render": render,
+        "mean": evaluation.means,
+        "per_view": evaluation.per_view,
+    }
+    if args.uncertainty:
+        result["uncertainty"] = _uncertainty(
+            restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
+        )
+    (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
+    _print_summary(result, grid, choice, out, not args.no_renders)
+    # After the metrics are safe: the run's training curves, beside its log.
+    curves = plot_curves(run_dir)
+    if curves is not None:
+        result["curves"] = str(curves)
+        (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
+        print(f"training curves: {curves}")
+    return result
+
+
+def _uncertainty(restored: Run, views, chunk: int, out: Path, *, temperature: float, renders: bool) -> dict:
+    """The predictive pass over `views`: maps (PNGs unless `renders` is false, and arrays in
+    `uncertainty.npz`) and the calibration measures."""
+    started = time.perf_counter()
+    dataset = restored.dataset
+    maps = predict_views(restored.model, views, dataset.near, dataset.far, chunk, temperature=temperature)
+    seconds = time.perf_counter() - started
+    np.savez_compressed(out / "uncertainty.npz", view_ids=np.asarray(views.ids), **maps)
+    if renders:
+        write_uncertainty_maps(out, views, maps, near=dataset.near, far=dataset.far)
+    report = calibration_report(maps, views.images, views.depths)
+    report["temperature"] = temperature
+    report["seconds_per_frame"] = seconds / max(views.num_views, 1)
+    return report
+
+
+def _check_arguments(args: argparse.Namespace) -> None:
+    if args.chunk is not None and args.chunk < 1:
+        raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
+    if args.temperature is not None and not args.uncertainty:
+        raise ConfigError("--temperature scales the predictive distribution: it needs --uncertainty")
+    if args.temperature is None:
+        args.temperature = 1.0
+    if not (math.isfinite(args.temperature) and args.temperature > 0):
+        raise ConfigError(f"--temperature must be a finite positive number, got {args.temperature}")
+    if args.max_views < 0:
+        raise ConfigError(f"--max-views must be 0 (all test views) or positive, got {args.max_views}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+
+    def body() -> None:
+        _check_arguments(args)
+        run(args)
+
+    return run_command(args, body, interrupted="evaluation stopped; nothing was changed in the run")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
