@@ -16,8 +16,9 @@ Two formulations compute the same values and gradients:
   per-point formulation's gradient into loops that recompute the cotangent for every
   scattered element and reduce over the corner axis element by element; this one keeps
   each loop a plain row copy or row update (`benchmarks/LOG.md`, "The CPU step: the lookup,
-  the allocator and the per-part profile"). The tri-plane encoding's product of three planes has one of its own, `plane_product`, whose
-  gradient forms each plane's features once and scatters 2x2 windows.
+  the allocator and the per-part profile"). The tri-plane encoding's product of three planes
+  has one of its own, `plane_product`, whose gradient forms each plane's features once and
+  scatters 2x2 windows.
 
 Only the batch knows every point that shares a row, so this is the one place in the fields
 written for a batch rather than for one point.
