@@ -54,6 +54,11 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._inference.threshold import threshold_rays as threshold_rays
     from ._inference.video import Video as Video
     from ._inference.video import render_video as render_video
+    from ._inference.viewer import Viewer as Viewer
+    from ._inference.viewer import ViewerCamera as ViewerCamera
+    from ._inference.viewer import camera_of_view as camera_of_view
+    from ._inference.viewer import preview_image as preview_image
+    from ._inference.viewer import viewer_rays as viewer_rays
     from ._nn.compositing import blend_weights as blend_weights
     from ._nn.compositing import composite_rgb as composite_rgb
     from ._nn.compositing import depth_quantile as depth_quantile

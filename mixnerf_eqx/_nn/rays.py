@@ -203,6 +203,7 @@ def camera_rays(
     *,
     intrinsics: Float[np.ndarray, "num_views 3 3"] | None = None,
     ndc: bool = False,
+    ndc_camera: tuple[float, int, int] | None = None,
     origin_plane_z: float | None = None,
 ) -> RayBundle:
     """The rays through every pixel centre of a stack of pinhole cameras.
@@ -218,6 +219,9 @@ def camera_rays(
     - `ndc`: map the rays into normalised device coordinates (`ndc_rays`, near plane 1) for
       forward-facing scenes; the frustums are then cylinders whose radius is the spacing of
       neighbouring NDC origins, as in mip-NeRF's and RegNeRF's LLFF rays.
+    - `ndc_camera`: `(focal, width, height)` of the camera that defines the NDC space (the
+      scene's training cameras); `None`: these cameras' own. A camera with another field of
+      view (a viewer's) must map its rays into the scene's NDC space, not its own.
     - `origin_plane_z`: move the origins along their rays onto the world plane
       `z = origin_plane_z` (RegNeRF's DTU rays); `None` keeps them at the camera centres.
 
@@ -236,7 +240,8 @@ def camera_rays(
     if ndc:
         # The released code feeds the pre-NDC world directions, unnormalised, to the view branch.
         viewdirs = directions
-        origins, directions = ndc_rays(origins, directions, focal, focal, width, height)
+        ndc_focal, ndc_width, ndc_height = (focal, width, height) if ndc_camera is None else ndc_camera
+        origins, directions = ndc_rays(origins, directions, ndc_focal, ndc_focal, ndc_width, ndc_height)
         # The NDC rays are nearly parallel, so the frustum's size is set by the spacing of the
         # origins on the near plane, averaged over both image axes.
         dx = np.linalg.norm(origins[:, :-1] - origins[:, 1:], axis=-1)

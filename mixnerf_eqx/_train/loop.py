@@ -13,7 +13,7 @@ import os
 import shutil
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -325,6 +325,7 @@ def fit(
     write_renders: bool = True,
     log_every: int = 10,
     stop_after: int | None = None,
+    on_step: Callable[[TrainState], None] | None = None,
 ) -> TrainResult:
     """Trains a model as `config` says, with checkpoints, evaluation and renders in its run dir.
 
@@ -339,6 +340,9 @@ def fit(
     - `write_renders`: write PNG renders of the test views at the end.
     - `log_every`: steps between entries of the loss history (and bar updates).
     - `stop_after`: stop (with a checkpoint) after this step, as if interrupted; for tests.
+    - `on_step`: called with the state before the first step and after every step, between
+      steps (a live viewer: `python -m mixnerf_eqx.train --viewer`); it may block (a pause),
+      and a Ctrl-C while it runs stops the run at this safe point.
 
     **Returns:**
 
@@ -355,7 +359,7 @@ def fit(
     with hold_folder(run_dir):
         try:
             return _fit_holding(
-                config, run_dir, dataset, resume, progress, write_renders, log_every, stop_after
+                config, run_dir, dataset, resume, progress, write_renders, log_every, stop_after, on_step
             )
         except BaseException:
             if created:
@@ -372,6 +376,7 @@ def _fit_holding(
     write_renders: bool,
     log_every: int,
     stop_after: int | None,
+    on_step: Callable[[TrainState], None] | None = None,
 ) -> TrainResult:
     """`fit`, once the run folder is this process's."""
     train = config.train
@@ -406,6 +411,9 @@ def _fit_holding(
                 # loop redoes the step and its evaluation), or eval_every changed since.
                 log.evaluation(start, *_periodic_evaluation(config, dataset, state, with_images=images))
                 raise_if_interrupted()
+            if on_step is not None:
+                on_step(state)
+                raise_if_interrupted()
             for done in range(start + 1, last_step + 1):
                 state, metrics = take_step(state, draw(data, state, train.batch_size))
                 evaluate_now = _due(done, eval_every) and done < train.max_steps
@@ -423,6 +431,8 @@ def _fit_holding(
                 if checkpoint_now and not guard.streak:
                     save_checkpoint(run_dir, state, config=config_dict)
                     log.sync()
+                if on_step is not None:
+                    on_step(state)
                 raise_if_interrupted()
     except KeyboardInterrupt:
         log.close()

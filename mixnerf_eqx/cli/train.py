@@ -35,6 +35,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add_compilation_cache_argument(parser)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument(
+        "--viewer",
+        action="store_true",
+        help="serve the web viewer while training (viser, the viewer extra): the current parameters, "
+        "refreshed between steps, and a box that pauses training",
+    )
+    parser.add_argument("--viewer-host", default="127.0.0.1", help="the viewer's address (default 127.0.0.1)")
+    parser.add_argument(
+        "--viewer-port", type=int, default=8080, help="the viewer's port (default 8080; 0: any)"
+    )
+    parser.add_argument(
+        "--viewer-max-width",
+        type=int,
+        choices=(64, 128, 256, 512),
+        default=128,
+        help="the finest preview while training, in pixels (default 128: a small share of the CPU)",
+    )
+    parser.add_argument(
         "overrides", nargs="*", metavar="section.key=value", help="config overrides, e.g. train.max_steps=200"
     )
     return parser.parse_intermixed_args(argv)
@@ -60,6 +77,34 @@ def _print_report(metrics: dict, run_dir: Path) -> None:
     print(f"checkpoints: {run_dir / 'checkpoints'}")
 
 
+def _fit_with_viewer(config, args: argparse.Namespace):
+    """`fit` with the web viewer showing the state between steps; it stops with the run."""
+    from .._inference.viewer import Viewer
+    from ..data import load_dataset
+    from .view import check_viewer_installed
+
+    check_viewer_installed()
+    dataset = load_dataset(config.data)
+    viewer = Viewer(
+        None,
+        dataset,
+        host=args.viewer_host,
+        port=args.viewer_port,
+        max_width=args.viewer_max_width,
+        training=True,
+    )
+    print(f"viewer: {viewer.url}  (the run's current parameters; pause training from the panel)", flush=True)
+
+    def show(state) -> None:
+        viewer.update(state.model, state.step)  # the step stays on the device until a frame is drawn
+        viewer.wait_while_paused()
+
+    try:
+        return fit(config, dataset=dataset, progress=not args.no_progress, on_step=show)
+    finally:
+        viewer.stop()
+
+
 def _train(args: argparse.Namespace) -> int:
     try:
         path = config_path(args.config)
@@ -71,7 +116,10 @@ def _train(args: argparse.Namespace) -> int:
             config = replace_setting(config, "data", data_dir=args.data_dir)
         shown = args.config if str(path) == str(args.config) else f"{args.config} ({path})"
         print(f"config {shown}, {config.name}; outputs in {config.train.run_dir}")
-        result = fit(config, progress=not args.no_progress)
+        if args.viewer:
+            result = _fit_with_viewer(config, args)
+        else:
+            result = fit(config, progress=not args.no_progress)
     except (ConfigError, ValueError, OSError) as error:
         return report_error(error)
     except TrainingDiverged as error:

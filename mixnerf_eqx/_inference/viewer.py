@@ -1,0 +1,327 @@
+"""What the web viewer renders: a browser camera's rays and one preview image per mode.
+
+The browser (viser) gives a camera as a rotation `wxyz` and a `position` in OpenCV axes (x
+right, y down, looking along +z), a vertical field of view and an aspect ratio. This project's
+rays use OpenGL axes (y up, looking along -z, `mixnerf_eqx._nn.rays`), so the one conversion
+is `R_opengl = R_opencv @ diag(1, -1, -1)`, made in `ViewerCamera.camtoworld` and nowhere
+else. For forward-facing (NDC) scenes the rays are mapped into the scene's NDC space, the one
+its training cameras define, whatever the viewer's field of view.
+
+Previews come in a fixed set of widths (`PREVIEW_WIDTHS`) and are rendered in chunks of a
+fixed size (`PREVIEW_CHUNK`, padding the smallest previews up to one chunk), so moving the
+camera, resizing the window or refining a coarse frame never compiles anything new: the
+dense render compiles once, the predictive pass once.
+"""
+
+import dataclasses
+import math
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Float
+
+from .._nn.model import MixNeRF
+from .._nn.rays import RayBundle, camera_rays
+from .._predictive.uncertainty import predict_rays
+from .._util.images import colourise_depth, to_uint8
+from ..data import Dataset, Views
+from .evaluation import render_rays
+
+# Preview widths in pixels, coarse to fine: a frame is drawn at the first while the camera
+# moves and refined through the others while it is still.
+PREVIEW_WIDTHS = (64, 128, 256, 512)
+# Rays per compiled render call: every preview (at least 64 x 32 pixels) fills one or more.
+PREVIEW_CHUNK = 2048
+MODES = ("colour", "depth", "opacity", "colour spread", "depth spread")
+# The modes that read the predictive distribution: MixNeRF runs only.
+SPREAD_MODES = ("colour spread", "depth spread")
+# The colour spread (a standard deviation of colour in [0, 1]) shown from 0 to this.
+COLOUR_SPREAD_MAX = 0.25
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewerCamera:
+    """A browser camera: `rotation` (camera-to-world, OpenCV axes: x right, y down, looking
+    along +z) and `position` in world units, `fov` the vertical field of view in radians,
+    `aspect` width over height."""
+
+    rotation: Float[np.ndarray, "3 3"]
+    position: Float[np.ndarray, "3"]
+    fov: float
+    aspect: float
+
+    @classmethod
+    def from_wxyz(cls, wxyz, position, fov: float, aspect: float) -> "ViewerCamera":
+        """From viser's camera state (`client.camera.wxyz`, `.position`, `.fov`, `.aspect`)."""
+        from viser.transforms import SO3
+
+        rotation = SO3(np.asarray(wxyz, np.float64)).as_matrix()
+        return cls(rotation, np.asarray(position, np.float64), float(fov), float(aspect))
+
+    @property
+    def wxyz(self) -> np.ndarray:
+        """The rotation as viser's quaternion (w, x, y, z)."""
+        from viser.transforms import SO3
+
+        return SO3.from_matrix(self.rotation).wxyz
+
+    def camtoworld(self) -> Float[np.ndarray, "3 4"]:
+        """The camera-to-world matrix in this project's (OpenGL) axes."""
+        opengl = self.rotation @ np.diag([1.0, -1.0, -1.0])
+        return np.concatenate([opengl, self.position[:, None]], axis=1)
+
+    def size(self, width: int) -> tuple[int, int]:
+        """`(height, width)` of a preview `width` pixels wide (at least 2 rows)."""
+        return max(2, round(width / self.aspect)), width
+
+
+def camera_of_view(views: Views, index: int) -> ViewerCamera:
+    """The browser camera that sees what view `index` of `views` sees (its vertical field of
+    view from its focal length; a principal point off the image centre is not kept)."""
+    pose = np.asarray(views.camtoworlds[index], np.float64)
+    focal_y = views.focal if views.intrinsics is None else float(views.intrinsics[index][1, 1])
+    fov = 2.0 * math.atan(0.5 * views.height / focal_y)
+    rotation = pose[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    return ViewerCamera(rotation, pose[:3, 3].copy(), fov, views.width / views.height)
+
+
+def viewer_rays(camera: ViewerCamera, width: int, dataset: Dataset) -> RayBundle:
+    """The rays of `camera`'s pixels in a preview `width` pixels wide, in `dataset`'s ray
+    space (its near and far bounds; NDC with its training cameras' projection for
+    forward-facing scenes; its origin plane).
+
+    **Returns:**
+
+    A `RayBundle` with batch shape `(height, width)`.
+    """
+    like = dataset.train
+    height, width = camera.size(width)
+    focal = 0.5 * height / math.tan(0.5 * camera.fov)
+    rays = camera_rays(
+        camera.camtoworld()[None],
+        focal,
+        height,
+        width,
+        dataset.near,
+        dataset.far,
+        ndc=like.ndc,
+        ndc_camera=(like.focal, like.width, like.height) if like.ndc else None,
+        origin_plane_z=like.origin_plane_z,
+    )
+    return rays[0]
+
+
+def _padded(rays: RayBundle, count: int) -> RayBundle:
+    """`rays` flattened, with the last ray repeated up to `count` rays."""
+    flat = rays.reshape(-1)
+    missing = count - flat.batch_shape[0]
+    if missing <= 0:
+        return flat
+    return jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], missing, axis=0)]), flat)
+
+
+def preview_image(model: MixNeRF, rays: RayBundle, mode: str, near: float, far: float) -> np.ndarray:
+    """One preview of `rays` (batch shape `(height, width)`) as 8-bit RGB: the colour, the
+    depth coloured from `near` (yellow) to `far` (blue), the opacity in grey, or the predictive
+    distribution's colour spread (its standard deviation, mean over channels, from 0 to
+    `COLOUR_SPREAD_MAX`) or depth spread (from 0 to a quarter of `far - near`)."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    height, width = rays.batch_shape
+    flat = _padded(rays, PREVIEW_CHUNK)
+    if mode in SPREAD_MODES:
+        if model.mixture is None:
+            raise ValueError(f"{mode!r} needs a MixNeRF model (a mip-NeRF baseline has no mixture)")
+        summary = predict_rays(model, flat, PREVIEW_CHUNK)
+        if mode == "colour spread":
+            spread, top = np.mean(summary["colour_std"], axis=-1), COLOUR_SPREAD_MAX
+        else:
+            spread, top = summary["depth_std"], 0.25 * (far - near)
+        image = colourise_depth(spread[: height * width].reshape(height, width), 0.0, top)
+        return to_uint8(image)
+    rendered = render_rays(model, flat, PREVIEW_CHUNK)
+    if mode == "colour":
+        image = rendered.rgb
+    elif mode == "depth":
+        image = colourise_depth(rendered.depth[: height * width].reshape(height, width), near, far)
+        return to_uint8(image)
+    else:
+        image = np.repeat(rendered.acc.reshape(-1, 1), 3, axis=-1)
+    return to_uint8(image[: height * width].reshape(height, width, 3))
+
+
+def _thumbnail(image: np.ndarray, width: int = 96) -> np.ndarray:
+    """`image` shrunk by a whole factor to at most `width` pixels wide, as 8-bit RGB."""
+    step = max(1, math.ceil(image.shape[1] / width))
+    return to_uint8(np.asarray(image)[::step, ::step, :3])
+
+
+class Viewer:
+    """A web viewer of a model on a local port (viser): the scene rendered from the browser's
+    camera, with a selector for colour, depth, opacity and, for MixNeRF, the predictive colour
+    and depth spread; the training and test cameras as frustums with their images (a click
+    moves the browser's camera there). Each frame is drawn coarse first (`PREVIEW_WIDTHS[0]`
+    pixels wide) and refined up to `max_width` while the camera is still.
+
+    `update(model, step)` shows new parameters (training: `python -m mixnerf_eqx.train
+    --viewer`), at most once per `refresh_s` seconds of a still camera; with `training=True`
+    the panel has a "pause training" box that `wait_while_paused` honours.
+
+    **Arguments:**
+
+    - `model`: the model shown (`None` until the first `update`).
+    - `dataset`: the scene: its cameras, images, ray space and near/far bounds.
+    - `host`, `port`: where to serve (port 0: a free one); `url` says where it is.
+    - `max_width`: the finest preview width (one of `PREVIEW_WIDTHS`).
+    """
+
+    def __init__(
+        self,
+        model: MixNeRF | None,
+        dataset: Dataset,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        max_width: int = 256,
+        training: bool = False,
+        refresh_s: float = 2.0,
+    ):
+        import viser
+
+        if max_width not in PREVIEW_WIDTHS:
+            raise ValueError(f"max_width must be one of {PREVIEW_WIDTHS}, got {max_width}")
+        self.dataset = dataset
+        self.widths = tuple(width for width in PREVIEW_WIDTHS if width <= max_width)
+        self.refresh_s = refresh_s
+        self.frames = 0  # previews sent, over all clients
+        self.frame_seconds: dict[int, float] = {}  # the last preview's time per width
+        self._model, self._version, self._step = model, 0, None
+        self._stopped = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.url = f"http://{host}:{self.server.get_port()}"
+        mixture = model is None or model.mixture is not None
+        self.mode = self.server.gui.add_dropdown(
+            "Show", MODES if mixture else MODES[:3], initial_value="colour"
+        )
+        self.paused = self.server.gui.add_checkbox("Pause training", False) if training else None
+        self.status = self.server.gui.add_markdown("")
+        self._hidden = None  # the frustum of the view the camera last jumped to (it would fill the view)
+        self.cameras = self._add_cameras()
+        self._gone: set[int] = set()  # clients that disconnected: their threads stop
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(lambda client: self._gone.add(client.client_id))
+
+    def _add_cameras(self) -> list:
+        """A frustum per training and test view, with its image; a click jumps there."""
+        splits = [("train", self.dataset.train, (40, 120, 220)), ("test", self.dataset.test, (220, 90, 40))]
+        positions = np.asarray(self.dataset.train.camtoworlds)[:, :3, 3]
+        spread = float(np.median(np.linalg.norm(positions - positions.mean(axis=0), axis=-1)))
+        self.frustum_scale = scale = 0.15 * spread if spread > 0 else 0.1
+        handles = []
+        for split, views, colour in splits:
+            for index in range(views.num_views):
+                camera = camera_of_view(views, index)
+                handle = self.server.scene.add_camera_frustum(
+                    f"/cameras/{split}/{index}",
+                    fov=camera.fov,
+                    aspect=camera.aspect,
+                    scale=scale,
+                    color=colour,
+                    image=_thumbnail(views.images[index]),
+                    wxyz=camera.wxyz,
+                    position=camera.position,
+                )
+                handle.on_click(
+                    lambda event, camera=camera, h=handle: self.move_camera(event.client, camera, h)
+                )
+                handles.append(handle)
+        return handles
+
+    def move_camera(self, client, camera: ViewerCamera, frustum=None) -> None:
+        """Puts `client`'s browser camera at `camera` (its pose and field of view); `frustum`,
+        the one drawn there, is hidden until the camera moves away from it."""
+        if self._hidden is not None:
+            self._hidden.visible = True
+        self._hidden = frustum
+        if frustum is not None:
+            frustum.visible = False
+        with client.atomic():
+            client.camera.fov = camera.fov
+            client.camera.position = camera.position
+            client.camera.wxyz = camera.wxyz
+
+    def _connect(self, client) -> None:
+        self.move_camera(client, camera_of_view(self.dataset.train, 0), self.cameras[0])
+        thread = threading.Thread(
+            target=self._serve, args=(client,), daemon=True, name=f"viewer-{client.client_id}"
+        )
+        self._threads.append(thread)
+        thread.start()
+
+    def update(self, model: MixNeRF, step=None) -> None:
+        """Shows `model` from now on (a new frame once the refresh interval has passed)."""
+        self._model, self._step = model, step
+        self._version += 1
+
+    def wait_while_paused(self) -> None:
+        """Returns once "pause training" is unticked (at once without the box); a Ctrl-C is
+        taken while waiting."""
+        from .._util.interrupt import raise_if_interrupted
+
+        while self.paused is not None and self.paused.value and not self._stopped.is_set():
+            raise_if_interrupted()
+            time.sleep(0.05)
+
+    def render(self, camera: ViewerCamera, width: int, mode: str | None = None) -> np.ndarray:
+        """The preview of `camera`, `width` pixels wide, in `mode` (default: the panel's)."""
+        model = self._model
+        if model is None:
+            raise ValueError("no model to render yet")
+        started = time.perf_counter()
+        rays = viewer_rays(camera, width, self.dataset)
+        image = preview_image(model, rays, mode or self.mode.value, self.dataset.near, self.dataset.far)
+        self.frame_seconds[width] = time.perf_counter() - started
+        return image
+
+    def _serve(self, client) -> None:
+        """One client's frames: coarse at once when anything changes, then finer while the
+        camera, the mode and the model stay; a new model waits for the refresh interval."""
+        drawn, level, shown_at = None, 0, 0.0
+        while not self._stopped.is_set() and client.client_id not in self._gone:
+            try:
+                state = client.camera
+                camera = ViewerCamera.from_wxyz(state.wxyz, state.position, state.fov, state.aspect)
+            except AssertionError:  # the browser has not sent its camera yet
+                time.sleep(0.05)
+                continue
+            hidden = self._hidden
+            if hidden is not None and np.linalg.norm(camera.position - hidden.position) > self.frustum_scale:
+                hidden.visible, self._hidden = True, None
+            view = (tuple(camera.rotation.ravel()), tuple(camera.position), camera.fov, camera.aspect)
+            wanted = (view, self.mode.value, self._version)
+            model_only = drawn is not None and drawn[:2] == wanted[:2]
+            if wanted != drawn and not (model_only and time.monotonic() - shown_at < self.refresh_s):
+                drawn, level = wanted, 0
+            if self._model is None or level >= len(self.widths) or wanted != drawn:
+                time.sleep(0.02)
+                continue
+            image = self.render(camera, self.widths[level], wanted[1])
+            if client.client_id in self._gone:
+                break
+            client.scene.set_background_image(image, format="jpeg", jpeg_quality=90)
+            shown_at, level = time.monotonic(), level + 1
+            self.frames += 1
+            step = "" if self._step is None else f"step {int(self._step)}, "
+            seconds = self.frame_seconds[self.widths[level - 1]]
+            self.status.content = f"{step}{self.widths[level - 1]} px wide in {1000 * seconds:.0f} ms"
+
+    def stop(self) -> None:
+        """Stops serving and waits for the render threads."""
+        self._stopped.set()
+        for thread in self._threads:
+            thread.join(timeout=10)
+        self.server.stop()

@@ -1,0 +1,80 @@
+"""Look at a run in the browser: `python -m mixnerf_eqx.view RUN_DIR [--port 8080] [...]`.
+
+Loads the run's config and its latest (or the given) checkpoint and serves a web viewer
+(viser, the `viewer` extra) on a local port: the scene rendered from the browser's camera as
+colour, depth, opacity or, for MixNeRF, the predictive colour and depth spread; the training
+and test cameras as frustums with their images (a click jumps there). Frames are drawn coarse
+first and refined while the camera is still. Ctrl-C stops the server.
+"""
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .._inference.viewer import PREVIEW_WIDTHS, Viewer
+from .._train.run_folder import restore_run
+from .._util.compilation_cache import add_compilation_cache_argument
+from .._util.interrupt import raise_if_interrupted
+from .._util.typecheck import add_typecheck_argument
+from .common import run_command
+
+VIEWER_EXTRA = "the viewer needs viser: pip install 'mixnerf_eqx[viewer]'"
+
+
+def add_viewer_arguments(parser: argparse.ArgumentParser) -> None:
+    """`--host`, `--port` and `--max-width`, as `view` and `train --viewer` take them."""
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080; 0: any free)")
+    parser.add_argument(
+        "--max-width",
+        type=int,
+        choices=PREVIEW_WIDTHS,
+        default=256,
+        help="the finest preview's width in pixels (default 256)",
+    )
+
+
+def check_viewer_installed() -> None:
+    """A `ValueError` naming the extra when viser is missing."""
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise ValueError(VIEWER_EXTRA) from None
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.view", description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "run_dir", type=Path, help="a training run's folder (holds config.json, checkpoints/)"
+    )
+    parser.add_argument("--checkpoint", type=Path, default=None, help="a checkpoint (default: the latest)")
+    parser.add_argument(
+        "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
+    )
+    add_viewer_arguments(parser)
+    add_typecheck_argument(parser)
+    add_compilation_cache_argument(parser)
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+
+    def body() -> None:
+        check_viewer_installed()
+        run = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
+        viewer = Viewer(run.model, run.dataset, host=args.host, port=args.port, max_width=args.max_width)
+        print(f"viewer of {args.run_dir} (step {run.step}): {viewer.url}  (Ctrl-C to stop)", flush=True)
+        try:
+            while True:
+                raise_if_interrupted()
+                time.sleep(0.1)
+        finally:
+            viewer.stop()
+
+    return run_command(args, body, interrupted="viewer stopped")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,240 @@
+"""The web viewer: the browser camera's rays against the views' own, the preview renders and
+their compilations, the server's frustums, pause and shutdown, and (where Chromium is
+installed) a real browser drawing a frame and switching to depth."""
+
+import dataclasses
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import equinox as eqx
+import numpy as np
+import pytest
+
+import mixnerf_eqx as mx
+from mixnerf_eqx._inference import evaluation
+from mixnerf_eqx._inference.viewer import (
+    MODES,
+    PREVIEW_WIDTHS,
+    Viewer,
+    ViewerCamera,
+    camera_of_view,
+    preview_image,
+    viewer_rays,
+)
+from mixnerf_eqx._util.images import to_uint8
+from mixnerf_eqx.data import rays_for_views
+
+pytest.importorskip("viser")
+
+REPO = Path(__file__).resolve().parents[1]
+FIELDS = ("origins", "directions", "viewdirs", "radii", "near", "far")
+
+
+def _forward_facing(scene):
+    """`scene` as a forward-facing (NDC) scene: cameras near the origin looking along -z."""
+    poses = np.tile(np.eye(4, dtype=np.float32)[:3], (scene.train.num_views, 1, 1))
+    angles = np.linspace(-0.1, 0.1, scene.train.num_views)
+    poses[:, 0, 0], poses[:, 0, 2] = np.cos(angles), np.sin(angles)
+    poses[:, 2, 0], poses[:, 2, 2] = -np.sin(angles), np.cos(angles)
+    poses[:, :, 3] = np.stack([angles, 0.5 * angles, 0.1 * angles], axis=-1)
+    train = dataclasses.replace(scene.train, camtoworlds=poses, ndc=True)
+    return dataclasses.replace(scene, train=train, near=0.0, far=1.0)
+
+
+@pytest.mark.parametrize("space", ["world", "ndc"])
+def test_a_training_camera_through_the_viewer_gives_the_views_own_rays(tiny_scene, space):
+    """The one conversion (viser's OpenCV camera -> this project's rays), both ways: a view's
+    camera handed to the browser and back gives exactly that view's rays."""
+    scene = tiny_scene if space == "world" else _forward_facing(tiny_scene)
+    views = scene.train
+    for index in range(views.num_views):
+        camera = camera_of_view(views, index)
+        again = ViewerCamera.from_wxyz(camera.wxyz, camera.position, camera.fov, camera.aspect)
+        np.testing.assert_allclose(again.rotation, camera.rotation, atol=1e-6)  # float32 poses
+        ours = viewer_rays(again, views.width, scene)
+        theirs = rays_for_views(views.select([index]), scene.near, scene.far)
+        assert ours.batch_shape == (views.height, views.width)
+        for name in FIELDS:
+            np.testing.assert_allclose(getattr(ours, name), getattr(theirs, name)[0], rtol=1e-5, atol=1e-6)
+    # OpenCV looks along +z with y down: the view's -z axis is the browser camera's +z axis.
+    pose = np.asarray(views.camtoworlds[0], np.float64)
+    np.testing.assert_allclose(camera_of_view(views, 0).rotation[:, 2], -pose[:3, 2], atol=1e-7)
+
+
+def test_a_preview_of_a_training_camera_is_the_render_of_that_view(tiny_config, tiny_scene):
+    model = mx.init_train_state(tiny_config, tiny_scene).model
+    views = tiny_scene.test
+    rays = viewer_rays(camera_of_view(views, 1), views.width, tiny_scene)
+    want = mx.render_views(model, views.select([1]), tiny_scene.near, tiny_scene.far)
+    colour = preview_image(model, rays, "colour", tiny_scene.near, tiny_scene.far)
+    assert colour.shape == (views.height, views.width, 3) and colour.dtype == np.uint8
+    # The same rays in other chunks: equal up to a quantisation step where a sum rounds apart.
+    assert np.abs(colour.astype(int) - to_uint8(want.rgb[0]).astype(int)).max() <= 1
+    opacity = preview_image(model, rays, "opacity", tiny_scene.near, tiny_scene.far)
+    assert np.abs(opacity[..., 0].astype(int) - to_uint8(want.acc[0]).astype(int)).max() <= 1
+
+
+def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeypatch):
+    """Preview widths, window shapes and camera poses all reuse one compiled dense render
+    (and one predictive pass)."""
+    model = mx.init_train_state(tiny_config, tiny_scene).model
+    once = eqx.filter_jit(eqx.debug.assert_max_traces(lambda m, rays: m(rays).fine, max_traces=1))
+    monkeypatch.setattr(evaluation, "_render_dense", once)
+    camera = camera_of_view(tiny_scene.train, 0)
+    for step, width in enumerate(PREVIEW_WIDTHS[:3]):
+        for aspect in (1.0, 1.5, 0.75):
+            moved = dataclasses.replace(camera, position=camera.position + 0.05 * step, aspect=aspect)
+            for mode in ("colour", "depth"):
+                image = preview_image(model, viewer_rays(moved, width, tiny_scene), mode, 2.0, 6.0)
+                assert image.shape == (max(2, round(width / aspect)), width, 3)
+    for mode in ("colour spread", "depth spread"):
+        image = preview_image(model, viewer_rays(camera, 64, tiny_scene), mode, 2.0, 6.0)
+        assert image.shape == (64, 64, 3) and image.std() > 0
+    with pytest.raises(ValueError, match="mode must be one of"):
+        preview_image(model, viewer_rays(camera, 64, tiny_scene), "normals", 2.0, 6.0)
+
+
+def test_the_server_shows_every_camera_renders_and_stops(tiny_config, tiny_scene):
+    model = mx.init_train_state(tiny_config, tiny_scene).model
+    viewer = Viewer(model, tiny_scene, port=0, max_width=128)
+    try:
+        assert viewer.url.startswith("http://127.0.0.1:")
+        assert len(viewer.cameras) == tiny_scene.train.num_views + tiny_scene.test.num_views
+        assert tuple(viewer.mode.options) == MODES and viewer.widths == (64, 128)
+        image = viewer.render(camera_of_view(tiny_scene.test, 0), 128, "depth")
+        assert image.shape == (128, 128, 3) and image.std() > 0
+    finally:
+        viewer.stop()
+    baseline = dataclasses.replace(model, mixture=None)
+    viewer = Viewer(baseline, tiny_scene, port=0)
+    try:
+        assert "colour spread" not in viewer.mode.options  # the baseline has no mixture
+    finally:
+        viewer.stop()
+    with pytest.raises(ValueError, match="max_width must be one of"):
+        Viewer(model, tiny_scene, port=0, max_width=100)
+
+
+def test_pause_holds_training_between_steps_until_unticked(tiny_config, tiny_scene):
+    viewer = Viewer(None, tiny_scene, port=0, training=True)
+    seen = []
+    try:
+        viewer.paused.value = True
+
+        def on_step(state):
+            seen.append(int(state.step))
+            viewer.update(state.model, state.step)
+            viewer.wait_while_paused()
+
+        config = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, max_steps=3))
+        arguments = dict(dataset=tiny_scene, progress=False, on_step=on_step)
+        worker = threading.Thread(target=mx.fit, args=(config,), kwargs=arguments)
+        worker.start()
+        deadline = time.monotonic() + 120
+        while not seen and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        assert seen == [0]  # paused before the first step
+        viewer.paused.value = False
+        worker.join(timeout=300)
+        assert not worker.is_alive() and seen == [0, 1, 2, 3]
+    finally:
+        viewer.stop()
+
+
+def _trained_run(tiny_config, tiny_scene, steps=60):
+    config = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, max_steps=steps))
+    mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False)
+    return Path(config.train.run_dir)
+
+
+def test_the_view_command_prints_its_address_and_stops_on_ctrl_c(tiny_config, tiny_scene, tmp_path):
+    run_dir = _trained_run(tiny_config, tiny_scene, steps=2)
+    # As a terminal starts it: Ctrl-C raises KeyboardInterrupt (a runner started in the
+    # background may hand SIGINT on ignored).
+    program = (
+        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from mixnerf_eqx.cli.view import main; sys.exit(main(sys.argv[1:]))"
+    )
+    process = subprocess.Popen(
+        [sys.executable, "-c", program, str(run_dir), "--port", "0", "--max-width", "64"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        lines = []
+        while not any("viewer of" in line for line in lines) and process.poll() is None:
+            lines.append(process.stdout.readline())  # viser's banner, then the command's line
+        assert any("viewer of" in line and "http://127.0.0.1:" in line for line in lines), lines
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 130 and "viewer stopped" in err
+
+
+@pytest.mark.browser
+def test_a_browser_draws_a_frame_and_switching_to_depth_changes_it(tiny_config, tiny_scene, tmp_path):
+    """Headless Chromium opens the viewer, a frame is drawn, and choosing depth in the panel
+    changes the picture. `MIXNERF_VIEWER_RUN` (a run folder) and `MIXNERF_VIEWER_SCREENSHOT`
+    (a PNG path) make the README's screenshot from a real run."""
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("Chromium is not installed (.ci/run installs Debian's chromium)")
+    sync_playwright = pytest.importorskip("playwright.sync_api").sync_playwright
+    from PIL import Image
+
+    run_dir = os.environ.get("MIXNERF_VIEWER_RUN") or _trained_run(tiny_config, tiny_scene)
+    run = mx.runs.restore_run(run_dir, dataset=None if os.environ.get("MIXNERF_VIEWER_RUN") else tiny_scene)
+    viewer = Viewer(run.model, run.dataset, port=0, max_width=256)
+    shots = {}
+    try:
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path=chromium,
+                args=["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
+            )
+            page = browser.new_page(viewport={"width": 960, "height": 640})
+            page.goto(viewer.url)
+            for mode in ("colour", "depth"):
+                if mode == "depth":
+                    page.locator("input[role=combobox][value=colour]").click()
+                    page.get_by_role("option", name="depth", exact=True).click()
+                drawn = viewer.frames
+                deadline = time.monotonic() + 120
+                while (viewer.mode.value != mode or viewer.frames < drawn + len(viewer.widths)) and (
+                    time.monotonic() < deadline
+                ):
+                    time.sleep(0.1)
+                time.sleep(1.5)  # the last frame reaches the page
+                path = tmp_path / f"{mode}.png"
+                page.screenshot(path=path)
+                shots[mode] = np.asarray(Image.open(path).convert("RGB"), np.float64)
+            browser.close()
+    finally:
+        viewer.stop()
+    assert viewer.mode.value == "depth"
+    assert shots["colour"].std() > 10, "the page is blank"
+    assert np.abs(shots["colour"] - shots["depth"]).mean() > 5, "switching to depth changed nothing"
+    if os.environ.get("MIXNERF_VIEWER_SCREENSHOT"):
+        shutil.copy(tmp_path / "colour.png", os.environ["MIXNERF_VIEWER_SCREENSHOT"])
+
+
+def test_train_with_the_viewer_serves_while_it_trains_and_stops_after(tmp_path, capsys):
+    from helpers import TINY_OVERRIDES
+
+    from mixnerf_eqx.cli import train as train_cli
+
+    overrides = [o for o in TINY_OVERRIDES if not o.startswith("train.max_steps")] + ["train.max_steps=3"]
+    arguments = ["--config", "builtin", "--run-dir", str(tmp_path / "run"), "--no-progress", *overrides]
+    assert train_cli.main([*arguments, "--viewer", "--viewer-port", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "viewer: http://127.0.0.1:" in out and "test metrics after 3 steps" in out
+    assert not [thread for thread in threading.enumerate() if thread.name.startswith("viewer-")]
