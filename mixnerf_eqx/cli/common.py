@@ -3,6 +3,7 @@
 import argparse
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from .._util.compilation_cache import use_compilation_cache
 from .._util.interrupt import deferred_interrupts
@@ -44,6 +45,17 @@ def run_command(
             print(f"\ninterrupted: {interrupted}", file=sys.stderr)
         return 130
     return 0
+
+
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """`RUN_DIR`, `--checkpoint` and `--data-dir`, as the commands that read a run take them."""
+    parser.add_argument(
+        "run_dir", type=Path, help="a training run's folder (holds config.json, checkpoints/)"
+    )
+    parser.add_argument("--checkpoint", type=Path, default=None, help="checkpoint folder (default: latest)")
+    parser.add_argument(
+        "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
+    )
 
 
 def add_skipping_argument(parser: argparse.ArgumentParser) -> None:

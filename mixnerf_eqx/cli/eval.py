@@ -36,20 +36,14 @@ from .._util.progress import Progress
 from .._util.typecheck import add_typecheck_argument
 from ..data import evenly_spaced
 from ..metrics import lpips_available
-from .common import add_skipping_argument, run_command
+from .common import add_run_arguments, add_skipping_argument, run_command
 
 METRIC_COLUMNS = ("psnr", "ssim", "lpips", "average", "depth_mae")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.eval", description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "run_dir", type=Path, help="a training run's folder (holds config.json, checkpoints/)"
-    )
-    parser.add_argument("--checkpoint", type=Path, default=None, help="checkpoint folder (default: latest)")
-    parser.add_argument(
-        "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
-    )
+    add_run_arguments(parser)
     parser.add_argument(
         "--chunk", type=int, default=None, help="rays rendered at once, at most a view's (default: the run's)"
     )

@@ -24,14 +24,12 @@ from .._util import json_io as strict_json
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.progress import Progress
 from .._util.typecheck import add_typecheck_argument
-from .common import add_skipping_argument, run_command
+from .common import add_run_arguments, add_skipping_argument, run_command
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.render", description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "run_dir", type=Path, help="a training run's folder (holds config.json, checkpoints/)"
-    )
+    add_run_arguments(parser)
     parser.add_argument(
         "--path",
         choices=("auto", "spiral", "orbit", "test"),
@@ -46,10 +44,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--uncertainty",
         action="store_true",
         help="add a third panel: the predictive colour spread per pixel (needs the predictive module)",
-    )
-    parser.add_argument("--checkpoint", type=Path, default=None, help="checkpoint folder (default: latest)")
-    parser.add_argument(
-        "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
     )
     parser.add_argument("--chunk", type=int, default=None, help="rays rendered at once (default: the run's)")
     add_skipping_argument(parser)

@@ -10,14 +10,13 @@ first and refined while the camera is still. Ctrl-C stops the server.
 import argparse
 import sys
 import time
-from pathlib import Path
 
 from .._inference.viewer import PREVIEW_WIDTHS, Viewer
 from .._train.run_folder import restore_run
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.interrupt import raise_if_interrupted
 from .._util.typecheck import add_typecheck_argument
-from .common import run_command
+from .common import add_run_arguments, run_command
 
 VIEWER_EXTRA = "the viewer needs viser: pip install 'mixnerf_eqx[viewer]'"
 
@@ -45,13 +44,7 @@ def check_viewer_installed() -> None:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.view", description=__doc__.split("\n")[0])
-    parser.add_argument(
-        "run_dir", type=Path, help="a training run's folder (holds config.json, checkpoints/)"
-    )
-    parser.add_argument("--checkpoint", type=Path, default=None, help="a checkpoint (default: the latest)")
-    parser.add_argument(
-        "--data-dir", default=None, help="dataset root (default: the run's, else $MIXNERF_DATA_DIR)"
-    )
+    add_run_arguments(parser)
     add_viewer_arguments(parser)
     add_typecheck_argument(parser)
     add_compilation_cache_argument(parser)
