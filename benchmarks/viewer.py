@@ -62,7 +62,12 @@ def loop_seconds(config: mx.Config, dataset, max_width: int | None) -> dict:
     frames up to that width) and a browser page."""
     times: list[float] = []
     watched = max_width is not None
-    viewer = mx.Viewer(None, dataset, port=0, training=True, max_width=max_width) if watched else None
+    mixture = config.method == "mixnerf"
+    viewer = (
+        mx.Viewer(None, dataset, port=0, training=True, max_width=max_width, mixture=mixture)
+        if watched
+        else None
+    )
     browser = None
 
     def on_step(state) -> None:

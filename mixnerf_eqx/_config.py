@@ -353,8 +353,8 @@ def _inapplicable(config: "Config") -> list[str]:
             listed = ", ".join(f"{section}.{name} = {getattr(values, name)!r}" for name in changed)
             problems.append(
                 f"{listed}: [{section}] does not apply to model.field = {config.model.field!r}; remove "
-                f"{'it' if len(changed) == 1 else 'them'} (a config that sets model.field starts the "
-                "other fields' sections from their defaults)"
+                f"{'it' if len(changed) == 1 else 'them'}, or set model.field = {field!r} (a config that "
+                "sets model.field starts the other fields' sections from their defaults)"
             )
     return problems
 
@@ -370,12 +370,12 @@ def _consistency_problems(config: "Config") -> list[str]:
             "(the method is no longer inferred from the lambdas)"
         )
     mlp = config.mlp
-    if mlp.skip_layer >= mlp.depth:
+    if config.model.field == "mlp" and mlp.skip_layer >= mlp.depth:
         problems.append(
             f"mlp.skip_layer must be below mlp.depth ({mlp.depth}), got {mlp.skip_layer} "
             "(0: no skip connection)"
         )
-    if mlp.min_deg >= mlp.max_deg:
+    if config.model.field == "mlp" and mlp.min_deg >= mlp.max_deg:
         problems.append(f"mlp.min_deg ({mlp.min_deg}) must be below mlp.max_deg ({mlp.max_deg})")
     problems += _inapplicable(config)
     if config.grid.max_resolution < config.grid.min_resolution:
@@ -527,9 +527,11 @@ _MOVED_KEYS = {
 }
 
 
-def _upgrade(values: dict[str, Any], source: str, base: "Config") -> dict[str, Any]:
-    """`values` with the keys of `_MOVED_KEYS` under their new names. A moved key of a field
-    the config does not use (an old grid run's `model.width`, which it never read) is dropped."""
+def _upgrade(values: dict[str, Any], source: str, base: "Config", written_by_a_run: bool) -> dict[str, Any]:
+    """`values` with the keys of `_MOVED_KEYS` under their new names, each with a warning that
+    names the new key. From a run's own files (`written_by_a_run`) they are read silently, and
+    the sections of the fields the run does not use are dropped: the tool wrote them, the run
+    never read them, and older versions kept whatever the config had there."""
     model = values.get("model")
     field = model.get("field", base.model.field) if isinstance(model, dict) else base.model.field
     upgraded = {key: dict(value) if isinstance(value, dict) else value for key, value in values.items()}
@@ -542,17 +544,17 @@ def _upgrade(values: dict[str, Any], source: str, base: "Config") -> dict[str, A
                 f"{source}: {section}.{key} and {new_section}.{new_key} both given; {section}.{key} is "
                 f"the old name of {new_section}.{new_key}"
             )
-        value = table.pop(key)
-        if new_section in FIELD_SECTIONS.values() and FIELD_SECTIONS.get(field) != new_section:
-            message = f"does not apply to model.field = {field!r}: ignored"
-        else:
-            target[new_key] = value
-            message = "read as that"
-        warnings.warn(
-            f"{source}: {section}.{key} is now {new_section}.{new_key}; {message}",
-            FutureWarning,
-            stacklevel=3,
-        )
+        target[new_key] = table.pop(key)
+        if not written_by_a_run:
+            warnings.warn(
+                f"{source}: {section}.{key} is now {new_section}.{new_key}; read as that",
+                FutureWarning,
+                stacklevel=3,
+            )
+    if written_by_a_run:
+        for other, section in FIELD_SECTIONS.items():
+            if other != field:
+                upgraded.pop(section, None)
     return {key: value for key, value in upgraded.items() if value != {} or key in values}
 
 
@@ -579,13 +581,22 @@ def _apply(base: Any, values: dict[str, Any], where: str) -> Any:
     return dataclasses.replace(base, **updates)
 
 
-def config_from_dict(values: dict[str, Any], source: str = "<dict>", base: Config | None = None) -> Config:
+def config_from_dict(
+    values: dict[str, Any],
+    source: str = "<dict>",
+    base: Config | None = None,
+    *,
+    written_by_a_run: bool = False,
+) -> Config:
     """Builds a `Config` from nested dictionaries (the layout of a TOML file).
 
-    Unknown sections or keys raise a `ConfigError` naming the key and `source`.
+    Unknown sections or keys raise a `ConfigError` naming the key and `source`. Keys that
+    moved are read under their new names with a warning; `written_by_a_run` (a run's
+    `config.json` or checkpoint metadata) reads them silently and ignores the sections of the
+    fields the run does not use.
     """
     base = Config() if base is None else base
-    values = _upgrade(values, source, base)
+    values = _upgrade(values, source, base, written_by_a_run)
     model = values.get("model")
     field = model.get("field", base.model.field) if isinstance(model, dict) else base.model.field
     if field != base.model.field and field in FIELD_SECTIONS and base.model.field in FIELD_SECTIONS:

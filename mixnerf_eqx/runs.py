@@ -5,7 +5,7 @@
     scene = run.dataset
     rendered = mx.render_views(run.model, scene.test, scene.near, scene.far)
 
-A run folder holds `config.json`, `log.jsonl`, `checkpoints/` and, once evaluated,
+A run folder holds `config.json`, `train_log.jsonl`, `checkpoints/` and, once evaluated,
 `metrics.json` and `renders/`; one process writes it at a time (`hold_folder`).
 """
 

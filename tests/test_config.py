@@ -1,5 +1,6 @@
 import dataclasses
 import importlib
+import json
 import re
 from pathlib import Path
 
@@ -176,14 +177,20 @@ def test_old_model_keys_of_a_field_name_their_new_section():
     assert (old.mlp.width, old.model.num_coarse_samples) == (48, 8)
     with pytest.warns(FutureWarning, match="model.matmul_dtype is now mlp.matmul_dtype"):
         assert load_config(None, ['model.matmul_dtype="bfloat16"']).mlp.matmul_dtype == "bfloat16"
+    # Typed by a user, an old key of the field a config does not use is an error as the new one is.
+    with pytest.warns(FutureWarning, match="model.width is now mlp.width"):
+        with pytest.raises(
+            ConfigError, match=r"mlp.width = 32: \[mlp\] does not apply .* or set model.field = 'mlp'"
+        ):
+            load_config("builtin_grid", ["model.width=32"])
+    # Written by a run: read silently, and the unused field's section ignored, whatever older
+    # versions kept there (an old grid run's MLP keys; an old MLP run's grid keys).
     old_grid_run = {"model": {"field": "grid", "width": 64, "depth": 4}, "grid": {"levels": 3}}
-    with pytest.warns(FutureWarning) as record:
-        restored = mx.config_from_dict(old_grid_run)
-    assert [str(w.message) for w in record] == [
-        f"<dict>: model.{key} is now mlp.{key}; does not apply to model.field = 'grid': ignored"
-        for key in ("width", "depth")
-    ]
+    restored = mx.config_from_dict(old_grid_run, written_by_a_run=True)
     assert restored.mlp == mx.config_from_dict({}).mlp and restored.grid.levels == 3
+    old_mlp_run = {"model": {"field": "mlp", "width": 32}, "grid": {"levels": 3, "tv_weight": 0.5}}
+    restored = mx.config_from_dict(old_mlp_run, written_by_a_run=True)
+    assert restored.mlp.width == 32 and restored.grid == mx.config_from_dict({}).grid
     with pytest.raises(ConfigError, match="model.depth and mlp.depth both given"):
         mx.config_from_dict({"model": {"depth": 3}, "mlp": {"depth": 4}})
 
@@ -293,3 +300,23 @@ def test_paper_configs_hold_the_published_hyperparameters(
     assert config.train.max_steps == max_steps
     assert config.optim.lr_init == lr_init
     assert (config.mlp.width, config.model.num_coarse_samples, config.train.batch_size) == (256, 128, 4096)
+
+
+def test_an_old_mlp_run_whose_config_kept_grid_keys_still_restores(tiny_config, tiny_scene, tmp_path):
+    """Before [mlp], an MLP run kept whatever [grid] its config had (`--config builtin_grid
+    model.field=mlp`); its folder still evaluates and resumes."""
+    run_dir = tmp_path / "run"
+    config = dataclasses.replace(
+        tiny_config, train=dataclasses.replace(tiny_config.train, max_steps=2, run_dir=str(run_dir))
+    )
+    mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False)
+    stored = json.loads((run_dir / "config.json").read_text())
+    stored["grid"] = {**stored["grid"], "levels": 3, "tv_weight": 0.5}  # what an older version wrote
+    stored["model"] = {**stored["model"], **stored.pop("mlp")}  # under the old names
+    (run_dir / "config.json").write_text(json.dumps(stored))
+    meta = next((run_dir / "checkpoints").iterdir()) / "meta.json"
+    meta.write_text(json.dumps({**json.loads(meta.read_text()), "config": stored}))
+    run = mx.runs.restore_run(run_dir, dataset=tiny_scene)
+    assert run.config.mlp == config.mlp and run.step == 2
+    longer = dataclasses.replace(config, train=dataclasses.replace(config.train, max_steps=3))
+    assert mx.fit(longer, dataset=tiny_scene, progress=False, write_renders=False).metrics["step"] == 3

@@ -2,6 +2,7 @@
 their compilations, the server's frustums, pause and shutdown, and (where Chromium is
 installed) a real browser drawing a frame and switching to depth."""
 
+import contextlib
 import dataclasses
 import os
 import shutil
@@ -67,6 +68,103 @@ def test_a_training_camera_through_the_viewer_gives_the_views_own_rays(tiny_scen
     np.testing.assert_allclose(camera_of_view(views, 0).rotation[:, 2], -pose[:3, 2], atol=1e-7)
 
 
+def test_a_wider_viewer_camera_maps_its_rays_into_the_scenes_own_ndc_space(tiny_scene):
+    """NDC is the training cameras' projection: a browser camera with another field of view
+    puts each ray's origin where the training projection maps the ray's point on the near
+    plane (a float64 reference written out here), not where its own projection would."""
+    scene = _forward_facing(tiny_scene)
+    views = scene.train
+    camera = dataclasses.replace(camera_of_view(views, 1), fov=1.5 * camera_of_view(views, 1).fov)
+    rays = viewer_rays(camera, 32, scene)
+    height, width = camera.size(32)
+    focal = 0.5 * height / np.tan(0.5 * camera.fov)
+    rows, cols = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+    local = np.stack([(cols - 0.5 * width) / focal, -(rows - 0.5 * height) / focal, -np.ones_like(rows)], -1)
+    pose = camera.camtoworld()
+    directions = local @ pose[:, :3].T
+    origin = pose[:, 3]
+    near_points = origin + ((-1.0 - origin[2]) / directions[..., 2])[..., None] * directions
+    scale = np.array([-2.0 * views.focal / views.width, -2.0 * views.focal / views.height])
+    want = scale * near_points[..., :2] / near_points[..., 2:3]
+    np.testing.assert_allclose(np.asarray(rays.origins)[..., :2], want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(rays.origins)[..., 2], -1.0)
+
+
+class _Camera:
+    def __init__(self, camera):
+        self.wxyz, self.position, self.fov, self.aspect = (
+            camera.wxyz,
+            camera.position,
+            camera.fov,
+            camera.aspect,
+        )
+
+
+class _Client:
+    """A stand-in for a browser: a camera the viewer reads and the widths of the frames sent."""
+
+    def __init__(self, camera):
+        self.client_id, self.camera, self.widths = 1, _Camera(camera), []
+        self.scene = type(
+            "Scene", (), {"set_background_image": lambda _, image, **kw: self.widths.append(image.shape[1])}
+        )()
+
+    def atomic(self):
+        return contextlib.nullcontext()
+
+
+def _frames(client, count, timeout=120):
+    deadline = time.monotonic() + timeout
+    while len(client.widths) < count and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return list(client.widths)
+
+
+def test_frames_refine_while_training_updates_the_model(tiny_config, tiny_scene):
+    """Parameters that change every step do not hold the picture at the coarsest width: the
+    frame in progress refines with the newest model, and restarts once per refresh interval."""
+    model = mx.init_train_state(tiny_config, tiny_scene).model
+    viewer = Viewer(model, tiny_scene, port=0, training=True, max_width=128, refresh_s=0.5)
+    stop = threading.Event()
+
+    def training():
+        while not stop.is_set():
+            viewer.update(model, 0)
+            time.sleep(0.01)
+
+    trainer = threading.Thread(target=training, daemon=True)
+    try:
+        trainer.start()
+        client = _Client(camera_of_view(tiny_scene.train, 0))
+        viewer._connect(client)
+        widths = _frames(client, 6)
+        assert 128 in widths and widths[:2] == [64, 128], widths
+    finally:
+        stop.set()
+        viewer.stop()
+
+
+def test_a_frame_that_fails_is_reported_and_the_next_one_is_drawn(tiny_config, tiny_scene):
+    """A spread asked of a model without a mixture (the panel offers it while training MixNeRF;
+    here forced) says why in the status line; the client's frames go on."""
+    baseline = dataclasses.replace(mx.init_train_state(tiny_config, tiny_scene).model, mixture=None)
+    viewer = Viewer(baseline, tiny_scene, port=0, max_width=64, mixture=True)
+    try:
+        client = _Client(camera_of_view(tiny_scene.train, 0))
+        viewer._connect(client)
+        assert _frames(client, 1) == [64]
+        viewer.mode.value = "colour spread"
+        deadline = time.monotonic() + 60
+        while "cannot show" not in viewer.status.content and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "cannot show colour spread: 'colour spread' needs a MixNeRF model" in viewer.status.content
+        viewer.mode.value = "depth"
+        assert _frames(client, 2) == [64, 64]
+        assert all(thread.is_alive() for thread in viewer._threads)
+    finally:
+        viewer.stop()
+
+
 def test_a_preview_of_a_training_camera_is_the_render_of_that_view(tiny_config, tiny_scene):
     model = mx.init_train_state(tiny_config, tiny_scene).model
     views = tiny_scene.test
@@ -81,8 +179,7 @@ def test_a_preview_of_a_training_camera_is_the_render_of_that_view(tiny_config, 
 
 
 def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeypatch):
-    """Preview widths, window shapes and camera poses all reuse one compiled dense render
-    (and one predictive pass)."""
+    """Preview widths, window shapes and camera poses all reuse one compiled dense render."""
     model = mx.init_train_state(tiny_config, tiny_scene).model
     once = eqx.filter_jit(eqx.debug.assert_max_traces(lambda m, rays: m(rays).fine, max_traces=1))
     monkeypatch.setattr(evaluation, "_render_dense", once)
@@ -237,4 +334,5 @@ def test_train_with_the_viewer_serves_while_it_trains_and_stops_after(tmp_path, 
     assert train_cli.main([*arguments, "--viewer", "--viewer-port", "0"]) == 0
     out = capsys.readouterr().out
     assert "viewer: http://127.0.0.1:" in out and "test metrics after 3 steps" in out
+    # No browser connected: the run is not slowed by frames nobody asked for.
     assert not [thread for thread in threading.enumerate() if thread.name.startswith("viewer-")]

@@ -176,6 +176,8 @@ class Viewer:
     - `dataset`: the scene: its cameras, images, ray space and near/far bounds.
     - `host`, `port`: where to serve (port 0: a free one); `url` says where it is.
     - `max_width`: the finest preview width (one of `PREVIEW_WIDTHS`).
+    - `mixture`: offer the predictive spreads (default: whether `model` has a mixture; give it
+      when `model` is `None` until the first `update`).
     """
 
     def __init__(
@@ -188,6 +190,7 @@ class Viewer:
         max_width: int = 256,
         training: bool = False,
         refresh_s: float = 2.0,
+        mixture: bool | None = None,
     ):
         import viser
 
@@ -203,7 +206,8 @@ class Viewer:
         self._threads: list[threading.Thread] = []
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.url = f"http://{host}:{self.server.get_port()}"
-        mixture = model is None or model.mixture is not None
+        if mixture is None:
+            mixture = model is not None and model.mixture is not None
         self.mode = self.server.gui.add_dropdown(
             "Show", MODES if mixture else MODES[:3], initial_value="colour"
         )
@@ -288,8 +292,10 @@ class Viewer:
         return image
 
     def _serve(self, client) -> None:
-        """One client's frames: coarse at once when anything changes, then finer while the
-        camera, the mode and the model stay; a new model waits for the refresh interval."""
+        """One client's frames: coarse at once when the camera or the mode changes, then finer
+        while they stay. New parameters (training) restart the ladder at most once per
+        `refresh_s`; until then the frame in progress goes on refining with the newest model.
+        A frame that fails is reported in the status line and the loop goes on."""
         drawn, level, shown_at = None, 0, 0.0
         while not self._stopped.is_set() and client.client_id not in self._gone:
             try:
@@ -303,21 +309,27 @@ class Viewer:
                 hidden.visible, self._hidden = True, None
             view = (tuple(camera.rotation.ravel()), tuple(camera.position), camera.fov, camera.aspect)
             wanted = (view, self.mode.value, self._version)
-            model_only = drawn is not None and drawn[:2] == wanted[:2]
-            if wanted != drawn and not (model_only and time.monotonic() - shown_at < self.refresh_s):
-                drawn, level = wanted, 0
-            if self._model is None or level >= len(self.widths) or wanted != drawn:
+            if drawn is None or wanted[:2] != drawn[:2]:
+                drawn, level = wanted, 0  # the camera or the mode changed: coarse at once
+            elif wanted != drawn and time.monotonic() - shown_at >= self.refresh_s:
+                drawn, level = wanted, 0  # new parameters, and the last frame is old enough
+            if self._model is None or level >= len(self.widths):
                 time.sleep(0.02)
                 continue
-            image = self.render(camera, self.widths[level], wanted[1])
+            width = self.widths[level]
+            try:
+                image = self.render(camera, width, wanted[1])
+            except Exception as error:  # noqa: BLE001 (one bad frame must not end the client's frames)
+                self.status.content = f"cannot show {wanted[1]}: {error}"
+                level = len(self.widths)
+                continue
             if client.client_id in self._gone:
                 break
             client.scene.set_background_image(image, format="jpeg", jpeg_quality=90)
             shown_at, level = time.monotonic(), level + 1
             self.frames += 1
             step = "" if self._step is None else f"step {int(self._step)}, "
-            seconds = self.frame_seconds[self.widths[level - 1]]
-            self.status.content = f"{step}{self.widths[level - 1]} px wide in {1000 * seconds:.0f} ms"
+            self.status.content = f"{step}{width} px wide in {1000 * self.frame_seconds[width]:.0f} ms"
 
     def stop(self) -> None:
         """Stops serving and waits for the render threads."""

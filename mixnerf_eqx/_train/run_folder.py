@@ -125,7 +125,7 @@ def read_run_config(run_dir: str | Path) -> Config:
         values = json.loads(path.read_text())
     except json.JSONDecodeError as error:
         raise ConfigError(f"{path}: not valid JSON ({error})") from None
-    return config_from_dict(values, str(path))
+    return config_from_dict(values, str(path), written_by_a_run=True)
 
 
 def restore_run(
@@ -224,7 +224,7 @@ def check_resumable(
     """Raises `ConfigError` unless `config` may continue the run `stored` was written by; the
     message ends with `remedy`."""
     # Read through the schema, so that keys older versions wrote compare as they are read now.
-    stored = config_to_dict(config_from_dict(stored, str(checkpoint / "meta.json")))
+    stored = config_to_dict(config_from_dict(stored, str(checkpoint / "meta.json"), written_by_a_run=True))
     changed = _differences(_comparable(stored), _comparable(config_to_dict(config)))
     if changed:
         raise ConfigError(

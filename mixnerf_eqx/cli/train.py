@@ -16,6 +16,7 @@ from .._util.compilation_cache import add_compilation_cache_argument, use_compil
 from .._util.interrupt import deferred_interrupts
 from .._util.typecheck import add_typecheck_argument, typecheck_argument
 from .common import report_error
+from .view import port_number
 
 DEFAULT_CONFIG = "builtin_grid"  # the quick start: a packaged config
 
@@ -42,7 +43,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--viewer-host", default="127.0.0.1", help="the viewer's address (default 127.0.0.1)")
     parser.add_argument(
-        "--viewer-port", type=int, default=8080, help="the viewer's port (default 8080; 0: any)"
+        "--viewer-port", type=port_number, default=8080, help="the viewer's port (default 8080; 0: any)"
     )
     parser.add_argument(
         "--viewer-max-width",
@@ -81,7 +82,7 @@ def _fit_with_viewer(config, args: argparse.Namespace):
     """`fit` with the web viewer showing the state between steps; it stops with the run."""
     from .._inference.viewer import Viewer
     from ..data import load_dataset
-    from .view import check_viewer_installed
+    from .view import check_viewer_installed, serving_line
 
     check_viewer_installed()
     dataset = load_dataset(config.data)
@@ -92,8 +93,10 @@ def _fit_with_viewer(config, args: argparse.Namespace):
         port=args.viewer_port,
         max_width=args.viewer_max_width,
         training=True,
+        mixture=config.method == "mixnerf",
     )
-    print(f"viewer: {viewer.url}  (the run's current parameters; pause training from the panel)", flush=True)
+    where = serving_line(viewer, args.viewer_port)
+    print(f"viewer: {where}  (the run's current parameters; pause training from the panel)", flush=True)
 
     def show(state) -> None:
         viewer.update(state.model, state.step)  # the step stays on the device until a frame is drawn

@@ -21,10 +21,28 @@ from .common import add_run_arguments, run_command
 VIEWER_EXTRA = "the viewer needs viser: pip install 'mixnerf_eqx[viewer]'"
 
 
+def port_number(text: str) -> int:
+    """A TCP port, 0 to 65535 (0: any free one)."""
+    port = int(text)
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0 to 65535, got {port}")
+    return port
+
+
+def serving_line(viewer: Viewer, asked: int) -> str:
+    """Where `viewer` serves, and whether that is not the port asked for (viser moves on to
+    the next free one)."""
+    actual = viewer.server.get_port()
+    moved = f" (port {asked} is in use)" if asked and actual != asked else ""
+    return f"{viewer.url}{moved}"
+
+
 def add_viewer_arguments(parser: argparse.ArgumentParser) -> None:
     """`--host`, `--port` and `--max-width`, as `view` and `train --viewer` take them."""
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default 8080; 0: any free)")
+    parser.add_argument(
+        "--port", type=port_number, default=8080, help="port to serve on (default 8080; 0: any free)"
+    )
     parser.add_argument(
         "--max-width",
         type=int,
@@ -58,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         check_viewer_installed()
         run = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
         viewer = Viewer(run.model, run.dataset, host=args.host, port=args.port, max_width=args.max_width)
-        print(f"viewer of {args.run_dir} (step {run.step}): {viewer.url}  (Ctrl-C to stop)", flush=True)
+        where = serving_line(viewer, args.port)
+        print(f"viewer of {args.run_dir} (step {run.step}): {where}  (Ctrl-C to stop)", flush=True)
         try:
             while True:
                 raise_if_interrupted()
