@@ -129,6 +129,9 @@ ABLATIONS = {
     "no-ramp": ("loss.lambda_colour_start=0.001",),
     # The NLLs applied to both levels instead of the coarse one only.
     "both-levels": ('loss.nll_levels="both"',),
+    # The light past the last sample as a colour-mixture component (white-background scenes;
+    # LLFF has no background, so its runs are MixNeRF's).
+    "background": ("loss.background_component=true",),
     # No gradient clipping (element-wise or global-norm).
     "no-clip": ("optim.grad_max_value=0.0", "optim.grad_max_norm=0.0"),
 }

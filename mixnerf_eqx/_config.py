@@ -115,6 +115,11 @@ class LossConfig:
     likelihood_floor: float = 1e-12  # NLL = -log(likelihood + floor); 0 for the exact NLL
     depth_scale: Literal["colour", "single"] = "colour"  # depth reuses the 3 colour scales
     nll_evaluation: Literal["log", "linear"] = "log"  # stable log space, or released arithmetic
+    # The light past the last sample as a colour-mixture component of its own (the background
+    # colour, Laplace scale `background_scale`) on scenes with a white background; off: the
+    # weights normalised over the samples (the paper). No effect on scenes without a background.
+    background_component: bool = False
+    background_scale: float = 0.01  # that component's scale per channel
     distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on both levels (0: off, the paper)
     opacity_weight: float = 0.0  # mean ray opacity on both levels, a prior for empty space (0: off)
     opacity_entropy_weight: float = 0.0  # binary entropy of the ray opacity, both levels (0: off)
@@ -254,6 +259,7 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
             "occupancy.update_every",
             "occupancy.segments",
             "occupancy.chunk",
+            "loss.background_scale",
             "grid.levels",
             "grid.features",
             "grid.decoder_width",

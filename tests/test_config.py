@@ -114,6 +114,18 @@ def test_baseline_has_no_mixture_parts():
     assert mixnerf.field.has_mixture_heads
 
 
+def test_background_component_follows_the_scene_and_the_option():
+    on = load_config(None, ["loss.background_component=true", "loss.background_scale=0.02"])
+    mixture = build_model(on, key=jax.random.key(0), white_background=True).mixture
+    assert mixture.background == (1.0, 1.0, 1.0) and mixture.background_scale == 0.02
+    # A scene without a background colour (LLFF) has no background component to add.
+    assert build_model(on, key=jax.random.key(0), white_background=False).mixture.background is None
+    # Off by default: the paper's normalised weights.
+    assert build_model(load_config(None), key=jax.random.key(0)).mixture.background is None
+    with pytest.raises(ConfigError, match="background_scale"):
+        load_config(None, ["loss.background_scale=0"])
+
+
 def test_method_is_chosen_not_inferred():
     """Zero mixture weights no longer make a baseline: the config says so, and says what to do."""
     zeros = [

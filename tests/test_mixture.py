@@ -284,3 +284,117 @@ def test_zero_weight_components_do_not_contribute(mixture):
     expected = ref_colour_nll(weights, rgb, beta, target, weight_eps=1e-10, floor=mixture.likelihood_floor)
     np.testing.assert_allclose(linear, expected, rtol=1e-5)
     np.testing.assert_allclose(got, expected, rtol=1e-5)
+
+
+# --- the background component (`background`, an option; off in the paper's configs) -------
+
+
+def _ref_background_nll(weights, rgb, beta, target, background, scale, floor):
+    """`-log(sum_j w_j prod_c Laplace(c; rgb_jc, beta_jc) + (1 - sum_j w_j) prod_c
+    Laplace(c; background_c, scale) [+ floor])`, linear float64: unnormalised weights."""
+    weights, rgb, beta, target = as_f64(weights, rgb, beta, target)
+    samples = np.prod(np.exp(-np.abs(target - rgb) / beta) / (2 * beta), axis=-1)
+    background = np.prod(np.exp(-np.abs(target - np.asarray(background)) / scale) / (2 * scale))
+    likelihood = np.sum(weights * samples) + (1.0 - weights.sum()) * background
+    return -np.log(likelihood + (floor or 0.0))
+
+
+BACKGROUND_MIXTURES = [
+    # (mixture, floor of the reference)
+    (LaplaceMixture(background=(1.0, 1.0, 1.0), background_scale=0.2), 1e-12),
+    (LaplaceMixture(background=(1.0, 1.0, 1.0), background_scale=0.2, likelihood_floor=None), None),
+    (LaplaceMixture(background=(0.9, 0.5, 1.0), background_scale=0.5, evaluation="linear"), 1e-12),
+]
+
+
+def _partly_transparent_ray(seed):
+    """A moderate ray whose weights sum to about one half, with a target near the background
+    colour, so that both the samples and the background carry the likelihood."""
+    ray = _moderate_ray(seed)
+    ray["weights"] = as_f64(as_f32(ray["weights"] * 0.5 / ray["weights"].sum()))
+    ray["target"] = as_f64(as_f32(np.clip(ray["target"] + 0.3, 0.0, 1.0)))
+    return ray
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("mixture, floor", BACKGROUND_MIXTURES)
+def test_background_component_matches_reference(seed, mixture, floor):
+    ray = _partly_transparent_ray(700 + seed)
+    got = float(mixture.colour_nll(_j(ray["weights"]), _j(ray["rgb"]), _j(ray["beta"]), _j(ray["target"])))
+    expected = _ref_background_nll(
+        ray["weights"],
+        ray["rgb"],
+        ray["beta"],
+        ray["target"],
+        mixture.background,
+        mixture.background_scale,
+        floor,
+    )
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)
+    # Not the normalised mixture: the transmittance carries half the mass here.
+    normalised = ref_colour_nll(ray["weights"], ray["rgb"], ray["beta"], ray["target"], floor=floor)
+    assert abs(got - normalised) > 1e-2
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_background_component_gradients_match_finite_differences(seed):
+    mixture, floor = BACKGROUND_MIXTURES[0]
+    ray = _partly_transparent_ray(720 + seed)
+    weights, rgb, beta, target = ray["weights"], ray["rgb"], ray["beta"], ray["target"]
+    grads = jax.grad(mixture.colour_nll, argnums=(0, 1, 2))(_j(weights), _j(rgb), _j(beta), _j(target))
+    options = dict(background=mixture.background, scale=mixture.background_scale, floor=floor)
+    expected = (
+        central_difference(lambda w: _ref_background_nll(w, rgb, beta, target, **options), weights),
+        central_difference(lambda c: _ref_background_nll(weights, c, beta, target, **options), rgb),
+        central_difference(lambda b: _ref_background_nll(weights, rgb, b, target, **options), beta),
+    )
+    for got, reference in zip(grads, expected, strict=True):
+        _assert_grad_close(got, reference)
+
+
+def test_transparent_ray_is_the_background_density_exactly():
+    """All weights zero: the NLL is the background component's alone, in closed form."""
+    ray = _moderate_ray(740)
+    mixture = LaplaceMixture(background=(1.0, 1.0, 1.0), background_scale=0.05, likelihood_floor=None)
+    weights = jnp.zeros(NUM_SAMPLES, jnp.float32)
+    value, grads = jax.value_and_grad(mixture.colour_nll, argnums=(0, 1, 2))(
+        weights, _j(ray["rgb"]), _j(ray["beta"]), _j(ray["target"])
+    )
+    target = as_f64(as_f32(ray["target"]))
+    expected = np.sum(np.log(2 * 0.05) + (1.0 - target) / 0.05)
+    np.testing.assert_allclose(float(value), expected, rtol=1e-6)
+    for grad in grads:
+        assert np.all(np.isfinite(np.asarray(grad)))
+    # The gradient says: raise the weights where the samples explain the target better.
+    assert np.any(np.asarray(grads[0]) != 0)
+
+
+def test_opaque_ray_has_no_background_mass_and_finite_gradients():
+    """Weights that sum to one (or just above, by rounding) leave nothing to the background:
+    the NLL is the normalised mixture's, and no gradient is NaN."""
+    ray = _moderate_ray(741)
+    weights = as_f64(as_f32(ray["weights"] / ray["weights"].sum() * (1 + 2e-7)))
+    mixture = LaplaceMixture(background=(1.0, 1.0, 1.0), weight_eps=0.0)
+    value, grads = jax.value_and_grad(mixture.colour_nll, argnums=(0, 1, 2))(
+        _j(weights), _j(ray["rgb"]), _j(ray["beta"]), _j(ray["target"])
+    )
+    plain = LaplaceMixture(weight_eps=0.0).colour_nll(
+        _j(weights), _j(ray["rgb"]), _j(ray["beta"]), _j(ray["target"])
+    )
+    np.testing.assert_allclose(float(value), float(plain), rtol=1e-5, atol=1e-5)
+    for grad in grads:
+        assert np.all(np.isfinite(np.asarray(grad)))
+
+
+def test_background_leaves_the_depth_mixture_normalised():
+    ray = _partly_transparent_ray(742)
+    args = (_j(ray["weights"]), _j(ray["ray_depth"]), _j(ray["beta"]), jnp.float32(ray["direction_norm"]))
+    with_background = LaplaceMixture(background=(1.0, 1.0, 1.0)).depth_nll(*args)
+    np.testing.assert_array_equal(np.asarray(with_background), np.asarray(LaplaceMixture().depth_nll(*args)))
+
+
+@pytest.mark.parametrize("bad", [dict(background=(1.0, 1.0)), dict(background_scale=0.0)])
+def test_background_options_are_checked(bad):
+    # The runtime type check (in tests) or the module's own check, whichever sees it first.
+    with pytest.raises((ValueError, TypeError)):
+        LaplaceMixture(**bad)

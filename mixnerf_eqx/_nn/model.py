@@ -273,6 +273,8 @@ def build_model(
             likelihood_floor=config.loss.likelihood_floor or None,
             depth_scale=config.loss.depth_scale,
             evaluation=config.loss.nll_evaluation,
+            background=(1.0, 1.0, 1.0) if white_background and config.loss.background_component else None,
+            background_scale=config.loss.background_scale,
         )
     return MixNeRF(
         field=field,

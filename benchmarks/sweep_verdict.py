@@ -1,0 +1,159 @@
+"""The paired verdict of two sweeps: MixNeRF against its baseline, seed by seed.
+
+    python benchmarks/sweep_verdict.py runs/full_fern/mixnerf runs/full_fern/mipnerf \
+        --title "fern 3-view, 504x378, 14,000 steps" --out benchmarks/results/full_res_fern
+
+Each argument is a folder written by `python -m mixnerf_eqx.sweep` (`SCENE/seed_N/metrics.json`
+per finished run). For every scene both sweeps finished, and for the validation and the test
+views, the table gives MixNeRF - baseline paired by seed (mean ± standard error, "ahead" or
+"behind" only beyond two standard errors, `fidelity.paired_verdict`) for PSNR, SSIM, LPIPS and
+depth error where the scene knows its depth, and the runs that collapsed (test PSNR more than
+2 dB below their method's median on the scene). Validation views are where settings are
+chosen; the test row is the record. Runs still in progress (no `metrics.json`) are listed and
+left out. `--out STEM` writes `STEM.json` and `STEM.md`.
+"""
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from fidelity import COLLAPSE_DB, VERDICT_METRICS, collapsed, paired_verdict  # noqa: E402
+
+SPLITS = ("val", "test")
+
+
+def read_sweep(folder: Path) -> tuple[dict[str, dict[int, dict[str, Any]]], list[str]]:
+    """`{scene: {seed: metrics}}` of the finished runs under `folder`, and the unfinished runs."""
+    if not folder.is_dir():
+        raise SystemExit(f"{folder}: no such sweep folder")
+    finished: dict[str, dict[int, dict[str, Any]]] = {}
+    unfinished = []
+    for run in sorted(folder.glob("*/seed_*")):
+        scene, seed = run.parent.name, int(run.name.removeprefix("seed_"))
+        metrics = run / "metrics.json"
+        if not metrics.is_file():
+            unfinished.append(f"{scene}/seed_{seed}")
+            continue
+        finished.setdefault(scene, {})[seed] = json.loads(metrics.read_text())
+    return finished, unfinished
+
+
+def _cell(found: dict[str, Any] | None, digits: int) -> str:
+    if found is None:
+        return "n/a"
+    stderr = "" if np.isnan(found["stderr"]) else f" ± {found['stderr']:.{digits}f}"
+    return f"{found['mean']:+.{digits}f}{stderr}: {found['verdict']}"
+
+
+def _values(runs: dict[int, dict[str, Any]], split: str, key: str) -> dict[int, float]:
+    """`{seed: metric}` of the runs that scored `key` on `split`."""
+    return {seed: m[split][key] for seed, m in runs.items() if m.get(split, {}).get(key) is not None}
+
+
+def verdicts(
+    mix: dict[str, dict[int, dict[str, Any]]], base: dict[str, dict[int, dict[str, Any]]]
+) -> dict[str, Any]:
+    """Per scene both sweeps have: per split and metric the paired verdict, the per-seed
+    figures of each method, and the collapsed seeds of each method (on the test views)."""
+    table: dict[str, Any] = {}
+    for scene in sorted(set(mix) & set(base)):
+        row: dict[str, Any] = {"seeds": sorted(set(mix[scene]) & set(base[scene]))}
+        for split in SPLITS:
+            row[split] = {}
+            for _, key, higher, _ in VERDICT_METRICS:
+                mix_values = _values(mix[scene], split, key)
+                base_values = _values(base[scene], split, key)
+                row[split][key] = {
+                    "verdict": paired_verdict(mix_values, base_values, higher),
+                    "mixnerf": mix_values,
+                    "baseline": base_values,
+                }
+        row["collapsed"] = {
+            name: collapsed({seed: m["test"]["psnr"] for seed, m in runs.items()})
+            for name, runs in (("mixnerf", mix[scene]), ("baseline", base[scene]))
+        }
+        row["runs"] = {"mixnerf": sorted(mix[scene]), "baseline": sorted(base[scene])}
+        table[scene] = row
+    return table
+
+
+def markdown(table: dict[str, Any], title: str) -> str:
+    lines = [
+        f"### {title}",
+        "",
+        "| scene | views | seeds | "
+        + " | ".join(f"{name} (MixNeRF - baseline)" for name, *_ in VERDICT_METRICS)
+        + " | collapsed (MixNeRF / baseline) |",
+        "|---|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
+    ]
+    for scene, row in table.items():
+        for split in SPLITS:
+            cells = [_cell(row[split][key]["verdict"], digits) for _, key, _, digits in VERDICT_METRICS]
+            falls = (
+                " / ".join(
+                    f"{len(row['collapsed'][m])} of {len(row['runs'][m])}" for m in ("mixnerf", "baseline")
+                )
+                if split == "test"
+                else ""
+            )
+            label = "validation" if split == "val" else "test"
+            head = f"| {scene} | {label} | {len(row['seeds'])} | "
+            lines.append(head + " | ".join(cells) + f" | {falls} |")
+    lines.append("")
+    for scene, row in table.items():
+        per_seed = row["test"]["psnr"]
+        for name in ("mixnerf", "baseline"):
+            figures = ", ".join(f"seed {s}: {v:.2f}" for s, v in sorted(per_seed[name].items()))
+            lines.append(f"- {scene}, {name} test PSNR: {figures}")
+    lines.append("")
+    lines.append(
+        "MixNeRF - baseline paired by seed, mean ± standard error; 'ahead' or 'behind' only beyond "
+        f"two standard errors. A run collapsed when its test PSNR is more than {COLLAPSE_DB:g} dB "
+        "below its method's median on the scene."
+    )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("mixnerf", type=Path, help="the MixNeRF sweep's folder")
+    parser.add_argument("baseline", type=Path, help="the baseline sweep's folder (same scenes and seeds)")
+    parser.add_argument("--title", default="MixNeRF against its baseline", help="the table's title")
+    parser.add_argument("--out", type=Path, help="write STEM.json and STEM.md")
+    args = parser.parse_args(argv)
+
+    mix, mix_open = read_sweep(args.mixnerf)
+    base, base_open = read_sweep(args.baseline)
+    for name, left in (("MixNeRF", mix_open), ("baseline", base_open)):
+        if left:
+            print(f"{name}: not finished, left out: {', '.join(left)}")
+    table = verdicts(mix, base)
+    if not table:
+        raise SystemExit("no scene has finished runs in both sweeps")
+    text = markdown(table, args.title)
+    print(text, end="")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        record = {
+            "title": args.title,
+            "mixnerf": str(args.mixnerf),
+            "baseline": str(args.baseline),
+            "unfinished": {"mixnerf": mix_open, "baseline": base_open},
+            "scenes": table,
+        }
+        args.out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
+        args.out.with_suffix(".md").write_text(text)
+        print(f"wrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.md')}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
