@@ -26,6 +26,7 @@ from mixnerf_eqx._inference.viewer import (
     ViewerCamera,
     camera_of_view,
     preview_image,
+    scene_facing,
     viewer_rays,
 )
 from mixnerf_eqx._util.images import to_uint8
@@ -336,3 +337,38 @@ def test_train_with_the_viewer_serves_while_it_trains_and_stops_after(tmp_path, 
     assert "viewer: http://127.0.0.1:" in out and "test metrics after 3 steps" in out
     # No browser connected: the run is not slowed by frames nobody asked for.
     assert not [thread for thread in threading.enumerate() if thread.name.startswith("viewer-")]
+
+
+def test_a_camera_turned_away_from_a_forward_facing_scene_shows_nothing(tiny_config, tiny_scene):
+    """NDC maps a ray heading away from the scene to a mirrored point on the near plane: those
+    pixels are left black instead of showing a mirrored picture. Turned half way, the pixels
+    looking into the scene are drawn as before."""
+    scene = _forward_facing(tiny_scene)
+    model = mx.init_train_state(tiny_config, tiny_scene).model
+    camera = camera_of_view(scene.train, 0)
+    assert scene_facing(camera, 32, scene).all()
+    assert scene_facing(camera, 32, tiny_scene) is None  # world space: every ray is in the scene
+
+    def turned(angle):
+        c, s = np.cos(angle), np.sin(angle)
+        about_y = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+        return dataclasses.replace(camera, rotation=about_y @ camera.rotation)
+
+    assert not scene_facing(turned(np.pi), 32, scene).any()
+    half = scene_facing(turned(0.5 * np.pi), 32, scene)
+    # Turned a quarter turn about the vertical axis: the columns on one side still look in.
+    assert half.any() and not half.all()
+    assert (half == half[:1]).all()  # whole columns
+    for mode in ("colour", "depth", "opacity"):
+        away = preview_image(model, viewer_rays(turned(np.pi), 32, scene), mode, 0.0, 1.0, visible=None)
+        hidden = preview_image(
+            model,
+            viewer_rays(turned(np.pi), 32, scene),
+            mode,
+            0.0,
+            1.0,
+            scene_facing(turned(np.pi), 32, scene),
+        )
+        assert (hidden == 0).all() and away.std() > 0  # without the mask: a (mirrored) picture
+        part = preview_image(model, viewer_rays(turned(0.5 * np.pi), 32, scene), mode, 0.0, 1.0, half)
+        assert (part[~half] == 0).all()

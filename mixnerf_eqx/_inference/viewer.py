@@ -21,7 +21,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 
 from .._nn.model import MixNeRF
 from .._nn.rays import RayBundle, camera_rays
@@ -114,6 +114,22 @@ def viewer_rays(camera: ViewerCamera, width: int, dataset: Dataset) -> RayBundle
     return rays[0]
 
 
+def scene_facing(
+    camera: ViewerCamera, width: int, dataset: Dataset
+) -> Bool[np.ndarray, "height width"] | None:
+    """Which of `camera`'s preview pixels look into a forward-facing (NDC) scene: their world
+    direction heads along the scene's -z axis, toward the near plane. NDC maps a ray that
+    heads away to a mirrored point on the near plane, so those pixels are not rendered.
+    `None` for scenes in world space, where every direction is a ray into the scene."""
+    if not dataset.train.ndc:
+        return None
+    height, width = camera.size(width)
+    focal = 0.5 * height / math.tan(0.5 * camera.fov)
+    world = camera_rays(camera.camtoworld()[None], focal, height, width, dataset.near, dataset.far)
+    directions = np.asarray(world.directions[0], np.float64)
+    return directions[..., 2] < -1e-6 * np.linalg.norm(directions, axis=-1)
+
+
 def _padded(rays: RayBundle, count: int) -> RayBundle:
     """`rays` flattened, with the last ray repeated up to `count` rays."""
     flat = rays.reshape(-1)
@@ -123,13 +139,28 @@ def _padded(rays: RayBundle, count: int) -> RayBundle:
     return jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], missing, axis=0)]), flat)
 
 
-def preview_image(model: MixNeRF, rays: RayBundle, mode: str, near: float, far: float) -> np.ndarray:
+def preview_image(
+    model: MixNeRF,
+    rays: RayBundle,
+    mode: str,
+    near: float,
+    far: float,
+    visible: Bool[np.ndarray, "height width"] | None = None,
+) -> np.ndarray:
     """One preview of `rays` (batch shape `(height, width)`) as 8-bit RGB: the colour, the
     depth coloured from `near` (yellow) to `far` (blue), the opacity in grey, or the predictive
     distribution's colour spread (its standard deviation, mean over channels, from 0 to
-    `COLOUR_SPREAD_MAX`) or depth spread (from 0 to a quarter of `far - near`)."""
+    `COLOUR_SPREAD_MAX`) or depth spread (from 0 to a quarter of `far - near`). Pixels where
+    `visible` is false (`scene_facing`) are black."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    image = _preview(model, rays, mode, near, far)
+    if visible is not None:
+        image = np.where(visible[..., None], image, np.uint8(0))
+    return image
+
+
+def _preview(model: MixNeRF, rays: RayBundle, mode: str, near: float, far: float) -> np.ndarray:
     height, width = rays.batch_shape
     flat = _padded(rays, PREVIEW_CHUNK)
     if mode in SPREAD_MODES:
@@ -287,7 +318,9 @@ class Viewer:
             raise ValueError("no model to render yet")
         started = time.perf_counter()
         rays = viewer_rays(camera, width, self.dataset)
-        image = preview_image(model, rays, mode or self.mode.value, self.dataset.near, self.dataset.far)
+        visible = scene_facing(camera, width, self.dataset)
+        dataset = self.dataset
+        image = preview_image(model, rays, mode or self.mode.value, dataset.near, dataset.far, visible)
         self.frame_seconds[width] = time.perf_counter() - started
         return image
 
