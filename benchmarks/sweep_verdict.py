@@ -83,13 +83,14 @@ def verdicts(
     return table
 
 
-def markdown(table: dict[str, Any], title: str) -> str:
+def markdown(table: dict[str, Any], title: str, names: tuple[str, str] = ("MixNeRF", "baseline")) -> str:
+    first, second = names
     lines = [
         f"### {title}",
         "",
         "| scene | views | seeds | "
-        + " | ".join(f"{name} (MixNeRF - baseline)" for name, *_ in VERDICT_METRICS)
-        + " | collapsed (MixNeRF / baseline) |",
+        + " | ".join(f"{name} ({first} - {second})" for name, *_ in VERDICT_METRICS)
+        + f" | collapsed ({first} / {second}) |",
         "|---|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
     ]
     for scene, row in table.items():
@@ -108,12 +109,12 @@ def markdown(table: dict[str, Any], title: str) -> str:
     lines.append("")
     for scene, row in table.items():
         per_seed = row["test"]["psnr"]
-        for name in ("mixnerf", "baseline"):
+        for name, label in zip(("mixnerf", "baseline"), names, strict=True):
             figures = ", ".join(f"seed {s}: {v:.2f}" for s, v in sorted(per_seed[name].items()))
-            lines.append(f"- {scene}, {name} test PSNR: {figures}")
+            lines.append(f"- {scene}, {label} test PSNR: {figures}")
     lines.append("")
     lines.append(
-        "MixNeRF - baseline paired by seed, mean ± standard error; 'ahead' or 'behind' only beyond "
+        f"{first} - {second} paired by seed, mean ± standard error; 'ahead' or 'behind' only beyond "
         f"two standard errors. A run collapsed when its test PSNR is more than {COLLAPSE_DB:g} dB "
         "below its method's median on the scene."
     )
@@ -124,9 +125,18 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("mixnerf", type=Path, help="the MixNeRF sweep's folder")
-    parser.add_argument("baseline", type=Path, help="the baseline sweep's folder (same scenes and seeds)")
+    parser.add_argument("mixnerf", type=Path, help="the MixNeRF sweep's folder (first)")
+    parser.add_argument(
+        "baseline", type=Path, help="the baseline sweep's folder (second; same scenes and seeds)"
+    )
     parser.add_argument("--title", default="MixNeRF against its baseline", help="the table's title")
+    parser.add_argument(
+        "--names",
+        nargs=2,
+        default=("MixNeRF", "baseline"),
+        metavar=("FIRST", "SECOND"),
+        help="what the two sweeps are called in the table (e.g. a remedy against MixNeRF)",
+    )
     parser.add_argument("--out", type=Path, help="write STEM.json and STEM.md")
     args = parser.parse_args(argv)
 
@@ -138,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     table = verdicts(mix, base)
     if not table:
         raise SystemExit("no scene has finished runs in both sweeps")
-    text = markdown(table, args.title)
+    text = markdown(table, args.title, tuple(args.names))
     print(text, end="")
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -146,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
             "title": args.title,
             "mixnerf": str(args.mixnerf),
             "baseline": str(args.baseline),
+            "names": list(args.names),
             "unfinished": {"mixnerf": mix_open, "baseline": base_open},
             "scenes": table,
         }

@@ -1,0 +1,58 @@
+"""`benchmarks/sweep_verdict.py`: two sweep folders paired seed by seed, on synthetic runs
+whose answers are worked out by hand."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import sweep_verdict  # noqa: E402
+
+
+def _sweep(root: Path, psnr: dict[int, float | None], offset: float = 0.0) -> Path:
+    for seed, value in psnr.items():
+        run = root / "fern" / f"seed_{seed}"
+        run.mkdir(parents=True)
+        if value is None:  # still running: no metrics.json
+            continue
+        scores = {"psnr": value, "ssim": 0.5 + value / 100, "lpips": 0.4 - value / 100}
+        metrics = {"val": {**scores, "psnr": value + offset}, "test": scores}
+        (run / "metrics.json").write_text(json.dumps(metrics))
+    return root
+
+
+def test_paired_verdicts_per_split_collapses_and_unfinished_runs(tmp_path, capsys):
+    # Differences +1.0, +1.2, +0.8 on test: mean 1.0, standard error 0.2/sqrt(3) = 0.115: ahead.
+    mix = _sweep(tmp_path / "mix", {0: 20.0, 1: 20.2, 2: 19.8, 3: None}, offset=-1.0)
+    base = _sweep(tmp_path / "base", {0: 19.0, 1: 19.0, 2: 19.0})
+    table = sweep_verdict.verdicts(sweep_verdict.read_sweep(mix)[0], sweep_verdict.read_sweep(base)[0])
+    test = table["fern"]["test"]["psnr"]["verdict"]
+    assert test["seeds"] == [0, 1, 2] and test["verdict"] == "ahead"
+    assert test["mean"] == pytest.approx(1.0) and test["stderr"] == pytest.approx(0.2 / 3**0.5)
+    # Validation PSNR 1 dB lower for MixNeRF: the same differences minus 1, mean 0: level.
+    assert table["fern"]["val"]["psnr"]["verdict"]["verdict"] == "level"
+    # LPIPS falls as PSNR rises here: lower is better, so MixNeRF is ahead there too.
+    assert table["fern"]["test"]["lpips"]["verdict"]["verdict"] == "ahead"
+    assert table["fern"]["test"]["depth_mae"]["verdict"] is None  # no depth: n/a
+    assert table["fern"]["collapsed"] == {"mixnerf": [], "baseline": []}
+
+    out = tmp_path / "out" / "verdict"
+    assert sweep_verdict.main([str(mix), str(base), "--title", "t", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "MixNeRF: not finished, left out: fern/seed_3" in printed
+    assert "| fern | test | 3 | +1.00 ± 0.12: ahead |" in printed
+    record = json.loads(out.with_suffix(".json").read_text())
+    assert record["unfinished"]["mixnerf"] == ["fern/seed_3"]
+
+
+def test_a_collapsed_run_and_too_few_seeds(tmp_path):
+    mix = _sweep(tmp_path / "mix", {0: 20.0, 1: 20.0, 2: 15.0})
+    base = _sweep(tmp_path / "base", {0: 19.0, 1: 19.0})
+    table = sweep_verdict.verdicts(sweep_verdict.read_sweep(mix)[0], sweep_verdict.read_sweep(base)[0])
+    assert table["fern"]["collapsed"]["mixnerf"] == [2]  # 5 dB below its median of 20
+    assert table["fern"]["test"]["psnr"]["verdict"]["verdict"] == "2 seeds: no verdict"
+    with pytest.raises(SystemExit, match="no such sweep folder"):
+        sweep_verdict.read_sweep(tmp_path / "missing")
