@@ -101,14 +101,34 @@ class _Camera:
         )
 
 
-class _Client:
-    """A stand-in for a browser: a camera the viewer reads and the widths of the frames sent."""
+class _Handle:
+    """A stand-in for a scene node or a panel element of one client."""
 
-    def __init__(self, camera):
-        self.client_id, self.camera, self.widths = 1, _Camera(camera), []
-        self.scene = type(
-            "Scene", (), {"set_background_image": lambda _, image, **kw: self.widths.append(image.shape[1])}
-        )()
+    def __init__(self, **fields):
+        self.visible, self.content, self.clicked = True, "", None
+        self.__dict__.update(fields)
+
+    def on_click(self, callback):
+        self.clicked = callback
+
+
+class _Client:
+    """A stand-in for a browser: a camera the viewer reads, the widths of the frames sent, and
+    its own frustums and status line."""
+
+    def __init__(self, camera, client_id=1):
+        self.client_id, self.camera, self.widths, self.frustums = client_id, _Camera(camera), [], []
+
+        def add_frustum(_, name, **fields):
+            self.frustums.append(_Handle(name=name, **fields))
+            return self.frustums[-1]
+
+        methods = {
+            "set_background_image": lambda _, image, **kw: self.widths.append(image.shape[1]),
+            "add_camera_frustum": add_frustum,
+        }
+        self.scene = type("Scene", (), methods)()
+        self.gui = type("Gui", (), {"add_markdown": lambda _, content: _Handle(content=content)})()
 
     def atomic(self):
         return contextlib.nullcontext()
@@ -156,9 +176,10 @@ def test_a_frame_that_fails_is_reported_and_the_next_one_is_drawn(tiny_config, t
         assert _frames(client, 1) == [64]
         viewer.mode.value = "colour spread"
         deadline = time.monotonic() + 60
-        while "cannot show" not in viewer.status.content and time.monotonic() < deadline:
+        status = viewer.clients[client.client_id].status
+        while "cannot show" not in status.content and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert "cannot show colour spread: 'colour spread' needs a MixNeRF model" in viewer.status.content
+        assert "cannot show colour spread: 'colour spread' needs a MixNeRF model" in status.content
         viewer.mode.value = "depth"
         assert _frames(client, 2) == [64, 64]
         assert all(thread.is_alive() for thread in viewer._threads)
@@ -372,3 +393,34 @@ def test_a_camera_turned_away_from_a_forward_facing_scene_shows_nothing(tiny_con
         assert (hidden == 0).all() and away.std() > 0  # without the mask: a (mirrored) picture
         part = preview_image(model, viewer_rays(turned(0.5 * np.pi), 32, scene), mode, 0.0, 1.0, half)
         assert (part[~half] == 0).all()
+
+
+def test_each_browser_has_its_own_frustums_hidden_frustum_and_status(tiny_config, tiny_scene):
+    """Two browsers: a jump hides the frustum it lands in for the browser that jumped only,
+    and moving away shows it again; each status line speaks of its own frames."""
+    model = mx.init_train_state(tiny_config, tiny_scene).model
+    viewer = Viewer(model, tiny_scene, port=0, max_width=64)
+    try:
+        first = _Client(camera_of_view(tiny_scene.train, 0), client_id=1)
+        second = _Client(camera_of_view(tiny_scene.train, 0), client_id=2)
+        viewer._connect(first)
+        viewer._connect(second)
+        count = tiny_scene.train.num_views + tiny_scene.test.num_views
+        assert len(first.frustums) == len(second.frustums) == count
+        assert _frames(first, 1) == [64] and _frames(second, 1) == [64]
+        # Each starts at the first training view, its own frustum there hidden.
+        assert not first.frustums[0].visible and not second.frustums[0].visible
+        test_view = tiny_scene.train.num_views  # the first test view's frustum
+        viewer.move_camera(first, camera_of_view(tiny_scene.test, 0), first.frustums[test_view])
+        assert not first.frustums[test_view].visible and first.frustums[0].visible
+        assert second.frustums[test_view].visible and not second.frustums[0].visible
+        # The first browser's camera moves away from the frustum it jumped to: shown again.
+        first.camera.position = first.camera.position + 10 * viewer.frustum_scale
+        deadline = time.monotonic() + 60
+        while not first.frustums[test_view].visible and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert first.frustums[test_view].visible and not second.frustums[0].visible
+        status = {c.client_id: viewer.clients[c.client_id].status for c in (first, second)}
+        assert status[1] is not status[2] and "64 px wide" in status[2].content
+    finally:
+        viewer.stop()

@@ -190,12 +190,25 @@ def _thumbnail(image: np.ndarray, width: int = 96) -> np.ndarray:
     return to_uint8(np.asarray(image)[::step, ::step, :3])
 
 
+@dataclasses.dataclass
+class _ClientView:
+    """One browser's own part of the viewer: its frustums, the one hidden because its camera
+    jumped there, and its status line."""
+
+    frustums: list
+    status: object
+    hidden: object = None
+
+
 class Viewer:
     """A web viewer of a model on a local port (viser): the scene rendered from the browser's
     camera, with a selector for colour, depth, opacity and, for MixNeRF, the predictive colour
     and depth spread; the training and test cameras as frustums with their images (a click
     moves the browser's camera there). Each frame is drawn coarse first (`PREVIEW_WIDTHS[0]`
     pixels wide) and refined up to `max_width` while the camera is still.
+
+    Each browser has its own camera, frustums (the one it jumped to is hidden for it alone)
+    and status line; the panel's selector (and "pause training") is one for all of them.
 
     `update(model, step)` shows new parameters (training: `python -m mixnerf_eqx.train
     --viewer`), at most once per `refresh_s` seconds of a still camera; with `training=True`
@@ -243,45 +256,49 @@ class Viewer:
             "Show", MODES if mixture else MODES[:3], initial_value="colour"
         )
         self.paused = self.server.gui.add_checkbox("Pause training", False) if training else None
-        self.status = self.server.gui.add_markdown("")
-        self._hidden = None  # the frustum of the view the camera last jumped to (it would fill the view)
-        self.cameras = self._add_cameras()
+        # Every view's camera, in the order of the frustums each client gets.
+        self.cameras = [
+            (split, index, camera_of_view(views, index))
+            for split, views in (("train", dataset.train), ("test", dataset.test))
+            for index in range(views.num_views)
+        ]
+        positions = np.asarray(dataset.train.camtoworlds)[:, :3, 3]
+        spread = float(np.median(np.linalg.norm(positions - positions.mean(axis=0), axis=-1)))
+        self.frustum_scale = 0.15 * spread if spread > 0 else 0.1
+        self.clients: dict[int, _ClientView] = {}  # per browser: frustums, the hidden one, status
         self._gone: set[int] = set()  # clients that disconnected: their threads stop
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(lambda client: self._gone.add(client.client_id))
 
-    def _add_cameras(self) -> list:
-        """A frustum per training and test view, with its image; a click jumps there."""
-        splits = [("train", self.dataset.train, (40, 120, 220)), ("test", self.dataset.test, (220, 90, 40))]
-        positions = np.asarray(self.dataset.train.camtoworlds)[:, :3, 3]
-        spread = float(np.median(np.linalg.norm(positions - positions.mean(axis=0), axis=-1)))
-        self.frustum_scale = scale = 0.15 * spread if spread > 0 else 0.1
+    def _add_cameras(self, client) -> list:
+        """`client`'s frustum of every training and test view, with its image; a click jumps
+        that client's camera there."""
+        colours = {"train": (40, 120, 220), "test": (220, 90, 40)}
+        views = {"train": self.dataset.train, "test": self.dataset.test}
         handles = []
-        for split, views, colour in splits:
-            for index in range(views.num_views):
-                camera = camera_of_view(views, index)
-                handle = self.server.scene.add_camera_frustum(
-                    f"/cameras/{split}/{index}",
-                    fov=camera.fov,
-                    aspect=camera.aspect,
-                    scale=scale,
-                    color=colour,
-                    image=_thumbnail(views.images[index]),
-                    wxyz=camera.wxyz,
-                    position=camera.position,
-                )
-                handle.on_click(
-                    lambda event, camera=camera, h=handle: self.move_camera(event.client, camera, h)
-                )
-                handles.append(handle)
+        for split, index, camera in self.cameras:
+            handle = client.scene.add_camera_frustum(
+                f"/cameras/{split}/{index}",
+                fov=camera.fov,
+                aspect=camera.aspect,
+                scale=self.frustum_scale,
+                color=colours[split],
+                image=_thumbnail(views[split].images[index]),
+                wxyz=camera.wxyz,
+                position=camera.position,
+            )
+            handle.on_click(lambda event, camera=camera, h=handle: self.move_camera(event.client, camera, h))
+            handles.append(handle)
         return handles
 
     def move_camera(self, client, camera: ViewerCamera, frustum=None) -> None:
         """Puts `client`'s browser camera at `camera` (its pose and field of view); `frustum`,
-        the one drawn there, is hidden until the camera moves away from it."""
-        if self._hidden is not None:
-            self._hidden.visible = True
-        self._hidden = frustum
+        the client's one drawn there, is hidden from it until its camera moves away."""
+        view = self.clients.get(client.client_id)
+        if view is not None:
+            if view.hidden is not None:
+                view.hidden.visible = True
+            view.hidden = frustum
         if frustum is not None:
             frustum.visible = False
         with client.atomic():
@@ -290,7 +307,9 @@ class Viewer:
             client.camera.wxyz = camera.wxyz
 
     def _connect(self, client) -> None:
-        self.move_camera(client, camera_of_view(self.dataset.train, 0), self.cameras[0])
+        frustums = self._add_cameras(client)
+        self.clients[client.client_id] = _ClientView(frustums, client.gui.add_markdown(""))
+        self.move_camera(client, self.cameras[0][2], frustums[0])
         thread = threading.Thread(
             target=self._serve, args=(client,), daemon=True, name=f"viewer-{client.client_id}"
         )
@@ -337,9 +356,10 @@ class Viewer:
             except AssertionError:  # the browser has not sent its camera yet
                 time.sleep(0.05)
                 continue
-            hidden = self._hidden
+            view_state = self.clients[client.client_id]
+            hidden = view_state.hidden
             if hidden is not None and np.linalg.norm(camera.position - hidden.position) > self.frustum_scale:
-                hidden.visible, self._hidden = True, None
+                hidden.visible, view_state.hidden = True, None
             view = (tuple(camera.rotation.ravel()), tuple(camera.position), camera.fov, camera.aspect)
             wanted = (view, self.mode.value, self._version)
             if drawn is None or wanted[:2] != drawn[:2]:
@@ -353,7 +373,7 @@ class Viewer:
             try:
                 image = self.render(camera, width, wanted[1])
             except Exception as error:  # noqa: BLE001 (one bad frame must not end the client's frames)
-                self.status.content = f"cannot show {wanted[1]}: {error}"
+                view_state.status.content = f"cannot show {wanted[1]}: {error}"
                 level = len(self.widths)
                 continue
             if client.client_id in self._gone:
@@ -362,7 +382,8 @@ class Viewer:
             shown_at, level = time.monotonic(), level + 1
             self.frames += 1
             step = "" if self._step is None else f"step {int(self._step)}, "
-            self.status.content = f"{step}{width} px wide in {1000 * self.frame_seconds[width]:.0f} ms"
+            view_state.status.content = f"{step}{width} px wide in {1000 * self.frame_seconds[width]:.0f} ms"
+        self.clients.pop(client.client_id, None)
 
     def stop(self) -> None:
         """Stops serving and waits for the render threads."""
