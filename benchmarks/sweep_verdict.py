@@ -35,6 +35,8 @@ def read_sweep(folder: Path) -> tuple[dict[str, dict[int, dict[str, Any]]], list
     finished: dict[str, dict[int, dict[str, Any]]] = {}
     unfinished = []
     for run in sorted(folder.glob("*/seed_*")):
+        if not run.is_dir() or not run.name.removeprefix("seed_").isdigit():
+            continue
         scene, seed = run.parent.name, int(run.name.removeprefix("seed_"))
         metrics = run / "metrics.json"
         if not metrics.is_file():
@@ -42,6 +44,26 @@ def read_sweep(folder: Path) -> tuple[dict[str, dict[int, dict[str, Any]]], list
             continue
         finished.setdefault(scene, {})[seed] = json.loads(metrics.read_text())
     return finished, unfinished
+
+
+def pairing_notes(
+    mix: dict[str, dict[int, dict[str, Any]]],
+    base: dict[str, dict[int, dict[str, Any]]],
+    names: tuple[str, str],
+) -> list[str]:
+    """What the pairing leaves out or pairs although it differs: scenes and seeds that one
+    sweep finished and the other did not, and pairs trained for different numbers of steps."""
+    notes = []
+    for scene in sorted(set(mix) ^ set(base)):
+        notes.append(f"{scene}: only {names[0] if scene in mix else names[1]} has finished runs, left out")
+    for scene in sorted(set(mix) & set(base)):
+        for seed in sorted(set(mix[scene]) ^ set(base[scene])):
+            notes.append(f"{scene}/seed_{seed}: finished in one sweep only, left out of the pairs")
+        for seed in sorted(set(mix[scene]) & set(base[scene])):
+            steps = (mix[scene][seed].get("step"), base[scene][seed].get("step"))
+            if steps[0] != steps[1]:
+                notes.append(f"{scene}/seed_{seed}: paired although trained {steps[0]} and {steps[1]} steps")
+    return notes
 
 
 def _cell(found: dict[str, Any] | None, digits: int) -> str:
@@ -53,7 +75,8 @@ def _cell(found: dict[str, Any] | None, digits: int) -> str:
 
 def _values(runs: dict[int, dict[str, Any]], split: str, key: str) -> dict[int, float]:
     """`{seed: metric}` of the runs that scored `key` on `split`."""
-    return {seed: m[split][key] for seed, m in runs.items() if m.get(split, {}).get(key) is not None}
+    # A scene without validation views has `"val": null`; a diverged run has null metrics.
+    return {seed: m[split][key] for seed, m in runs.items() if (m.get(split) or {}).get(key) is not None}
 
 
 def verdicts(
@@ -74,8 +97,12 @@ def verdicts(
                     "mixnerf": mix_values,
                     "baseline": base_values,
                 }
+        # A run without a test PSNR (it diverged: NaN is written as null) counts as collapsed.
         row["collapsed"] = {
-            name: collapsed({seed: m["test"]["psnr"] for seed, m in runs.items()})
+            name: sorted(
+                collapsed(_values(runs, "test", "psnr"))
+                + [seed for seed in runs if seed not in _values(runs, "test", "psnr")]
+            )
             for name, runs in (("mixnerf", mix[scene]), ("baseline", base[scene]))
         }
         row["runs"] = {"mixnerf": sorted(mix[scene]), "baseline": sorted(base[scene])}
@@ -142,9 +169,11 @@ def main(argv: list[str] | None = None) -> int:
 
     mix, mix_open = read_sweep(args.mixnerf)
     base, base_open = read_sweep(args.baseline)
-    for name, left in (("MixNeRF", mix_open), ("baseline", base_open)):
+    for name, left in zip(args.names, (mix_open, base_open), strict=True):
         if left:
             print(f"{name}: not finished, left out: {', '.join(left)}")
+    for note in pairing_notes(mix, base, tuple(args.names)):
+        print(note)
     table = verdicts(mix, base)
     if not table:
         raise SystemExit("no scene has finished runs in both sweeps")

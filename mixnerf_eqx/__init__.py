@@ -58,11 +58,13 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._inference.viewer import ViewerCamera as ViewerCamera
     from ._inference.viewer import camera_of_view as camera_of_view
     from ._inference.viewer import preview_image as preview_image
+    from ._inference.viewer import scene_facing as scene_facing
     from ._inference.viewer import viewer_rays as viewer_rays
     from ._nn.compositing import blend_weights as blend_weights
     from ._nn.compositing import composite_rgb as composite_rgb
     from ._nn.compositing import depth_quantile as depth_quantile
     from ._nn.compositing import expected_depth as expected_depth
+    from ._nn.compositing import log_transmittance as log_transmittance
     from ._nn.encoding import conical_frustum_moments as conical_frustum_moments
     from ._nn.encoding import frustum_gaussians as frustum_gaussians
     from ._nn.encoding import integrated_positional_encoding as integrated_positional_encoding

@@ -56,3 +56,35 @@ def test_a_collapsed_run_and_too_few_seeds(tmp_path):
     assert table["fern"]["test"]["psnr"]["verdict"]["verdict"] == "2 seeds: no verdict"
     with pytest.raises(SystemExit, match="no such sweep folder"):
         sweep_verdict.read_sweep(tmp_path / "missing")
+
+
+def test_null_validation_diverged_runs_and_what_the_pairing_leaves_out(tmp_path, capsys):
+    """A scene without validation views writes `"val": null`, a diverged run null metrics:
+    neither stops the table; the diverged run counts as collapsed; unpaired runs and pairs of
+    different lengths are said."""
+    mix = _sweep(tmp_path / "mix", {0: 20.0, 1: 20.2, 2: 19.8, 4: 20.0})
+    base = _sweep(tmp_path / "base", {0: 19.0, 1: 19.0, 2: 19.0})
+    (base / "fern" / "seed_0" / "notes.txt").write_text("")  # not a run folder: ignored
+    (base / "fern" / "seed_x").mkdir()
+    for seed in (0, 1, 2):
+        path = mix / "fern" / f"seed_{seed}" / "metrics.json"
+        metrics = json.loads(path.read_text())
+        metrics["val"] = None
+        if seed == 2:
+            metrics["test"]["psnr"] = None
+        metrics["step"] = 900 if seed == 1 else 1000
+        path.write_text(json.dumps(metrics))
+    for seed in (0, 1, 2):
+        path = base / "fern" / f"seed_{seed}" / "metrics.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "step": 1000}))
+    (mix / "lego" / "seed_0").mkdir(parents=True)
+    (mix / "lego" / "seed_0" / "metrics.json").write_text(json.dumps({"test": {"psnr": 20.0}}))
+    assert sweep_verdict.main([str(mix), str(base), "--names", "remedy", "MixNeRF"]) == 0
+    printed = capsys.readouterr().out
+    assert "lego: only remedy has finished runs, left out" in printed
+    assert "fern/seed_4: finished in one sweep only" in printed
+    assert "fern/seed_1: paired although trained 900 and 1000 steps" in printed
+    table = sweep_verdict.verdicts(sweep_verdict.read_sweep(mix)[0], sweep_verdict.read_sweep(base)[0])
+    assert table["fern"]["collapsed"]["mixnerf"] == [2]
+    assert table["fern"]["val"]["psnr"]["verdict"] is None
+    assert table["fern"]["test"]["psnr"]["verdict"]["seeds"] == [0, 1]

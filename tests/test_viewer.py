@@ -422,5 +422,9 @@ def test_each_browser_has_its_own_frustums_hidden_frustum_and_status(tiny_config
         assert first.frustums[test_view].visible and not second.frustums[0].visible
         status = {c.client_id: viewer.clients[c.client_id].status for c in (first, second)}
         assert status[1] is not status[2] and "64 px wide" in status[2].content
+        # A click that arrives for a browser not (or no longer) connected hides nothing.
+        stranger = _Client(camera_of_view(tiny_scene.train, 0), client_id=3)
+        viewer.move_camera(stranger, camera_of_view(tiny_scene.test, 0), first.frustums[test_view])
+        assert first.frustums[test_view].visible
     finally:
         viewer.stop()

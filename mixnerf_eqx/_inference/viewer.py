@@ -190,14 +190,21 @@ def _thumbnail(image: np.ndarray, width: int = 96) -> np.ndarray:
     return to_uint8(np.asarray(image)[::step, ::step, :3])
 
 
+# A jump's hidden frustum is shown again once the camera has left it, but not in the first
+# moments after the jump, while a camera pose the browser sent before it may still arrive.
+_JUMP_SETTLE_S = 1.0
+
+
 @dataclasses.dataclass
 class _ClientView:
     """One browser's own part of the viewer: its frustums, the one hidden because its camera
     jumped there, and its status line."""
 
-    frustums: list
     status: object
+    frustums: list = dataclasses.field(default_factory=list)
     hidden: object = None
+    hidden_at: float = 0.0  # when the camera jumped there (a pose sent before may still arrive)
+    lock: threading.Lock = dataclasses.field(default_factory=threading.Lock)
 
 
 class Viewer:
@@ -294,22 +301,24 @@ class Viewer:
     def move_camera(self, client, camera: ViewerCamera, frustum=None) -> None:
         """Puts `client`'s browser camera at `camera` (its pose and field of view); `frustum`,
         the client's one drawn there, is hidden from it until its camera moves away."""
-        view = self.clients.get(client.client_id)
-        if view is not None:
-            if view.hidden is not None:
-                view.hidden.visible = True
-            view.hidden = frustum
-        if frustum is not None:
-            frustum.visible = False
         with client.atomic():
             client.camera.fov = camera.fov
             client.camera.position = camera.position
             client.camera.wxyz = camera.wxyz
+        view = self.clients.get(client.client_id)
+        if view is None:  # not connected (yet, or any more): nothing of its own to hide
+            return
+        with view.lock:
+            if view.hidden is not None:
+                view.hidden.visible = True
+            view.hidden, view.hidden_at = frustum, time.monotonic()
+            if frustum is not None:
+                frustum.visible = False
 
     def _connect(self, client) -> None:
-        frustums = self._add_cameras(client)
-        self.clients[client.client_id] = _ClientView(frustums, client.gui.add_markdown(""))
-        self.move_camera(client, self.cameras[0][2], frustums[0])
+        view = self.clients[client.client_id] = _ClientView(client.gui.add_markdown(""))
+        view.frustums.extend(self._add_cameras(client))
+        self.move_camera(client, self.cameras[0][2], view.frustums[0])
         thread = threading.Thread(
             target=self._serve, args=(client,), daemon=True, name=f"viewer-{client.client_id}"
         )
@@ -347,7 +356,13 @@ class Viewer:
         """One client's frames: coarse at once when the camera or the mode changes, then finer
         while they stay. New parameters (training) restart the ladder at most once per
         `refresh_s`; until then the frame in progress goes on refining with the newest model.
-        A frame that fails is reported in the status line and the loop goes on."""
+        A frame that fails is reported in the client's status line and the loop goes on."""
+        try:
+            self._frames_of(client, self.clients[client.client_id])
+        finally:
+            self.clients.pop(client.client_id, None)
+
+    def _frames_of(self, client, view_state: _ClientView) -> None:
         drawn, level, shown_at = None, 0, 0.0
         while not self._stopped.is_set() and client.client_id not in self._gone:
             try:
@@ -356,10 +371,12 @@ class Viewer:
             except AssertionError:  # the browser has not sent its camera yet
                 time.sleep(0.05)
                 continue
-            view_state = self.clients[client.client_id]
-            hidden = view_state.hidden
-            if hidden is not None and np.linalg.norm(camera.position - hidden.position) > self.frustum_scale:
-                hidden.visible, view_state.hidden = True, None
+            with view_state.lock:
+                hidden = view_state.hidden
+                settled = time.monotonic() - view_state.hidden_at > _JUMP_SETTLE_S
+                if hidden is not None and settled:
+                    if np.linalg.norm(camera.position - hidden.position) > self.frustum_scale:
+                        hidden.visible, view_state.hidden = True, None
             view = (tuple(camera.rotation.ravel()), tuple(camera.position), camera.fov, camera.aspect)
             wanted = (view, self.mode.value, self._version)
             if drawn is None or wanted[:2] != drawn[:2]:
@@ -370,20 +387,21 @@ class Viewer:
                 time.sleep(0.02)
                 continue
             width = self.widths[level]
+            started = time.perf_counter()
             try:
                 image = self.render(camera, width, wanted[1])
             except Exception as error:  # noqa: BLE001 (one bad frame must not end the client's frames)
                 view_state.status.content = f"cannot show {wanted[1]}: {error}"
                 level = len(self.widths)
                 continue
+            seconds = time.perf_counter() - started
             if client.client_id in self._gone:
                 break
             client.scene.set_background_image(image, format="jpeg", jpeg_quality=90)
             shown_at, level = time.monotonic(), level + 1
             self.frames += 1
             step = "" if self._step is None else f"step {int(self._step)}, "
-            view_state.status.content = f"{step}{width} px wide in {1000 * self.frame_seconds[width]:.0f} ms"
-        self.clients.pop(client.client_id, None)
+            view_state.status.content = f"{step}{width} px wide in {1000 * seconds:.0f} ms"
 
     def stop(self) -> None:
         """Stops serving and waits for the render threads."""

@@ -11,6 +11,16 @@ from jaxtyping import Array, Float
 from .._custom_types import RGB, Edges, PerSample, PerSampleRGB, ScalarLike
 
 
+def log_transmittance(
+    density: PerSample, t_edges: Edges, step_scale: Float[Array, ""] | PerSample
+) -> Float[Array, ""]:
+    """`log T = -sum_i sigma_i delta_i`: the log of the light that passes every sample of
+    `blend_weights(density, t_edges, step_scale)`, exact where `1 - sum_i w_i` has lost every
+    digit (an optical depth above about 16 in float32)."""
+    deltas = jnp.maximum(t_edges[1:] - t_edges[:-1], 0.0) * step_scale
+    return -jnp.sum(density * deltas)
+
+
 def blend_weights(density: PerSample, t_edges: Edges, step_scale: Float[Array, ""] | PerSample) -> PerSample:
     """Alpha-compositing weights `w_i = T_i (1 - exp(-sigma_i delta_i))`.
 

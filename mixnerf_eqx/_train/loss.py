@@ -23,7 +23,7 @@ from jaxtyping import Array, Float
 
 from .._config import LossConfig, register_loss_weight, unregister_loss_weight
 from .._custom_types import PRNGKey
-from .._nn.compositing import blend_weights, distortion
+from .._nn.compositing import blend_weights, distortion, log_transmittance
 from .._nn.model import MixNeRF, RenderOutputs
 from .._nn.rays import RayBundle
 from .._nn.renderer import LevelOutputs
@@ -252,12 +252,22 @@ def _mixture_of(inputs: LossInputs, level: LevelOutputs):
     return mixture, outputs
 
 
+def _log_transmittance(mixture, density, t_edges, step_scale):
+    """The log transmittance under those weights, where the mixture has a background
+    component to weight with it (`None` otherwise: nothing is computed)."""
+    if getattr(mixture, "background", None) is None:
+        return None
+    return jax.vmap(log_transmittance)(density, t_edges, step_scale)
+
+
 def _nll_colour(inputs: LossInputs) -> Float[Array, ""]:
     """NLL_C (eq. 7): the colour's mixture NLL under the rendered weights."""
+    direction_norm = jnp.linalg.norm(inputs.rays.directions, axis=-1)
 
     def level_nll(level):
         mixture, outputs = _mixture_of(inputs, level)
-        nll = jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, inputs.target_rgb)
+        log_t = _log_transmittance(mixture, outputs.density, level.t_edges, direction_norm)
+        nll = jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, inputs.target_rgb, log_t)
         return jnp.mean(nll)
 
     return _summed(level_nll(level) for level in inputs.nll_levels)
@@ -282,7 +292,8 @@ def _nll_regen(inputs: LossInputs) -> Float[Array, ""]:
     def level_nll(level):
         mixture, outputs = _mixture_of(inputs, level)
         regen_weights = jax.vmap(blend_weights)(outputs.density, level.t_edges, outputs.ray_depth)
-        nll = jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, inputs.target_rgb)
+        log_t = _log_transmittance(mixture, outputs.density, level.t_edges, outputs.ray_depth)
+        nll = jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, inputs.target_rgb, log_t)
         return jnp.mean(nll)
 
     return _summed(level_nll(level) for level in inputs.nll_levels)

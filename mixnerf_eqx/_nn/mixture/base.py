@@ -15,10 +15,16 @@ class AbstractMixture(eqx.Module):
 
     @abc.abstractmethod
     def colour_nll(
-        self, weights: PerSample, rgb: PerSampleRGB, beta: PerSampleRGB, target: RGB
+        self,
+        weights: PerSample,
+        rgb: PerSampleRGB,
+        beta: PerSampleRGB,
+        target: RGB,
+        log_transmittance: Float[Array, ""] | None = None,
     ) -> Float[Array, ""]:
         """`-log p(c_GT | r)` under the colour mixture (eqs. 4-6), or eq. 9 when `weights`
-        are the regenerated ones."""
+        are the regenerated ones. `log_transmittance`, the log of the light that passes the
+        last sample under those weights, is for mixtures with a background component."""
 
     @abc.abstractmethod
     def depth_nll(

@@ -60,7 +60,9 @@ class LaplaceMixture(AbstractMixture):
       An RGB colour: the light that passes the last sample is a component of its own, the
       background colour with Laplace scale `background_scale` per channel, and the
       coefficients are the unnormalised weights `w_j` and the ray's transmittance
-      `1 - sum_j w_j` (they sum to one without normalising; `weight_eps` does not apply).
+      `T = exp(-sum_j sigma_j delta_j)` (they sum to one without normalising; `weight_eps`
+      does not apply). The losses give `T` as its logarithm, from the densities, so that an
+      opaque floater in front of the background keeps its gradient toward transparency.
       This is the mixture whose mean is the rendered colour over that background. The depth
       mixture keeps the normalised weights: the background has no depth to predict.
     - `background_scale`: the background component's scale (a constant: the background
@@ -107,28 +109,23 @@ class LaplaceMixture(AbstractMixture):
         self,
         weights: PerSample,
         component_log_density: PerSample,
-        background_log_density: Float[Array, ""] | None = None,
+        background: tuple[Float[Array, ""], Float[Array, ""]] | None = None,
     ) -> Float[Array, ""]:
-        """`-log sum_j pi_j p_j` (plus the floor); with `background_log_density`, the
-        unnormalised weights and the transmittance `1 - sum w` of the background component."""
+        """`-log sum_j pi_j p_j` (plus the floor); with `background = (log T, log p_bg)`, the
+        unnormalised weights and the background component weighted by the transmittance."""
         if self.evaluation == "linear":
-            if background_log_density is None:
+            if background is None:
                 mixing = weights / (jnp.sum(weights) + self.weight_eps)
                 likelihood = jnp.sum(mixing * jnp.exp(component_log_density))
             else:
-                transmittance = jnp.maximum(1.0 - jnp.sum(weights), 0.0)
                 likelihood = jnp.sum(weights * jnp.exp(component_log_density))
-                likelihood = likelihood + transmittance * jnp.exp(background_log_density)
+                likelihood = likelihood + jnp.exp(background[0] + background[1])
             return -jnp.log(likelihood + (self.likelihood_floor or 0.0))
-        if background_log_density is None:
+        if background is None:
             terms = self.log_mixing_coefficients(weights) + component_log_density
         else:
-            terms = jnp.concatenate(
-                [
-                    _log_where_positive(weights) + component_log_density,
-                    (_log_where_positive(1.0 - jnp.sum(weights)) + background_log_density)[None],
-                ]
-            )
+            samples = _log_where_positive(weights) + component_log_density
+            terms = jnp.concatenate([samples, (background[0] + background[1])[None]])
         # A ray without mass (every term -inf) takes the safe branch, so that no gradient
         # passes through log(0).
         has_mass = jnp.any(terms > -jnp.inf)
@@ -140,14 +137,25 @@ class LaplaceMixture(AbstractMixture):
         return -jnp.logaddexp(log_likelihood, jnp.log(self.likelihood_floor))
 
     def colour_nll(
-        self, weights: PerSample, rgb: PerSampleRGB, beta: PerSampleRGB, target: RGB
+        self,
+        weights: PerSample,
+        rgb: PerSampleRGB,
+        beta: PerSampleRGB,
+        target: RGB,
+        log_transmittance: Float[Array, ""] | None = None,
     ) -> Float[Array, ""]:
+        """See `AbstractMixture.colour_nll`. With a `background`, `log_transmittance` (`log T =
+        -sum sigma delta`, `mixnerf_eqx.log_transmittance`) weights its component; without
+        it, `log(1 - sum w)` stands in, which is exact only while the ray is far from opaque."""
         component = jnp.sum(laplace_log_density(target, rgb, beta), axis=-1)
         if self.background is None:
             return self._nll(weights, component)
-        background = jnp.asarray(self.background, target.dtype)
+        if log_transmittance is None:
+            log_transmittance = _log_where_positive(1.0 - jnp.sum(weights))
+        colour = jnp.asarray(self.background, target.dtype)
         scale = jnp.full_like(target, self.background_scale)
-        return self._nll(weights, component, jnp.sum(laplace_log_density(target, background, scale)))
+        background_log_density = jnp.sum(laplace_log_density(target, colour, scale))
+        return self._nll(weights, component, (log_transmittance, background_log_density))
 
     def depth_nll(
         self,
