@@ -27,7 +27,7 @@ def laplace_log_density(
     return residual_term - log_scale - jnp.log(2.0)
 
 
-def _log_where_positive(x: Float[Array, "*shape"]) -> Float[Array, "*shape"]:
+def _log_where_positive(x: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
     """`log x` where `x > 0`, `-inf` elsewhere, with no NaN gradient from `log(0)`."""
     positive = x > 0
     return jnp.where(positive, jnp.log(jnp.where(positive, x, 1.0)), -jnp.inf)
