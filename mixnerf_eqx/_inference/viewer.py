@@ -345,9 +345,9 @@ class Viewer:
         if model is None:
             raise ValueError("no model to render yet")
         started = time.perf_counter()
-        rays = viewer_rays(camera, width, self.dataset)
-        visible = scene_facing(camera, width, self.dataset)
         dataset = self.dataset
+        rays = viewer_rays(camera, width, dataset)
+        visible = scene_facing(camera, width, dataset)
         image = preview_image(model, rays, mode or self.mode.value, dataset.near, dataset.far, visible)
         self.frame_seconds[width] = time.perf_counter() - started
         return image
