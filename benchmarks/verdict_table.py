@@ -1,0 +1,156 @@
+"""One verdict table per scene and regime: MixNeRF - baseline on the test views, paired by seed.
+
+    python benchmarks/verdict_table.py            # prints it and writes results/verdict_cpu.md
+
+Gathers the rows from the result files the fidelity section of `benchmarks/README.md` is made
+of (each names the command that makes it): the 500-epoch protocol's summary
+(`fidelity.py --report`) and the sweeps' verdicts (`sweep_verdict.py --out`). Every cell is
+MixNeRF - baseline over the seeds both methods finished, mean ± standard error, "ahead" or
+"behind" only beyond two standard errors; the last column counts the runs that collapsed (test
+PSNR more than 2 dB below their method's median on the scene). A row whose result file is
+missing is listed as not made, so the table never drops a row silently.
+"""
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from fidelity import VERDICT_METRICS  # noqa: E402
+from sweep_verdict import _cell  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+@dataclass(frozen=True)
+class Row:
+    scene: str
+    images: str
+    training: str
+    chosen_on: str  # which views chose the settings
+    source: str  # a file under results/
+    key: str  # the scene's key in that file
+
+
+ROWS = (
+    Row(
+        "built-in",
+        "4 x 64x64",
+        "quick start (tri-plane), 1,800 steps",
+        "validation (steps, priors); its test views, earlier (grid)",
+        "quickstart_verdict_cpu.json",
+        "builtin",
+    ),
+    Row(
+        "built-in",
+        "4 x 32x32",
+        "protocol, tri-plane, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_triplane_summary.json",
+        "builtin",
+    ),
+    Row(
+        "fern",
+        "3 x 56x42",
+        "protocol, tri-plane, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_triplane_summary.json",
+        "fern",
+    ),
+    Row(
+        "fern",
+        "3 x 504x378",
+        "llff3_grid, 14,000 steps (12 epochs)",
+        "built-in's and fern's test views, earlier (grid)",
+        "full_res_fern_cpu.json",
+        "fern",
+    ),
+    Row(
+        "lego",
+        "4 x 40x40",
+        "protocol, tri-plane, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_triplane_summary.json",
+        "lego",
+    ),
+    Row(
+        "lego",
+        "4 x 400x400",
+        "blender4_grid, 7,800 steps (6.2 epochs)",
+        "built-in's test views, earlier (grid)",
+        "full_res_lego_cpu.json",
+        "lego",
+    ),
+)
+
+
+def row_verdicts(record: dict[str, Any], key: str) -> tuple[dict[str, Any], list[int], list[int], int] | None:
+    """`({metric: verdict}, MixNeRF's collapsed seeds, the baseline's, runs)` of one scene of a
+    result file: a `fidelity.py` summary or a `sweep_verdict.py` record; `None` without it."""
+    if "verdict" in record:  # fidelity.py's summary: the test views at the end of training
+        found = record["verdict"].get(key)
+        if found is None:
+            return None
+        runs = len(found["seeds"])
+        fell = found["collapsed"]
+        return {m: found.get(m) for _, m, _, _ in VERDICT_METRICS}, fell["mixnerf"], fell["mipnerf"], runs
+    found = record["scenes"].get(key)
+    if found is None:
+        return None
+    fell = found["collapsed"]
+    runs = len(found["seeds"])
+    return (
+        {m: found["test"][m]["verdict"] for _, m, _, _ in VERDICT_METRICS},
+        fell["mixnerf"],
+        fell["baseline"],
+        runs,
+    )
+
+
+def markdown(results: Path = RESULTS) -> str:
+    metrics = " | ".join(name for name, *_ in VERDICT_METRICS)
+    lines = [
+        "| scene | images | training | settings chosen on | seeds | "
+        + metrics
+        + " | collapsed (MixNeRF / baseline) |",
+        "|---|---|---|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
+    ]
+    for row in ROWS:
+        head = f"| {row.scene} | {row.images} | {row.training} | {row.chosen_on} | "
+        path = results / row.source
+        found = row_verdicts(json.loads(path.read_text()), row.key) if path.is_file() else None
+        if found is None:
+            blanks = " | ".join("" for _ in VERDICT_METRICS)
+            lines.append(head + f"not made (`results/{row.source}`) | {blanks} | |")
+            continue
+        cells, mix_fell, base_fell, runs = found
+        seeds = max((len(v["seeds"]) for v in cells.values() if v is not None), default=0)
+        digits = {m: d for _, m, _, d in VERDICT_METRICS}
+        body = " | ".join(_cell(cells[m], digits[m]) for _, m, _, _ in VERDICT_METRICS)
+        lines.append(head + f"{seeds} | {body} | {len(mix_fell)} / {len(base_fell)} of {runs} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--results", type=Path, default=RESULTS, help="the result files' folder")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="markdown file (default: RESULTS/verdict_cpu.md)"
+    )
+    args = parser.parse_args(argv)
+    text = markdown(args.results)
+    print(text, end="")
+    out = args.out or args.results / "verdict_cpu.md"
+    out.write_text(text)
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

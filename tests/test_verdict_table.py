@@ -1,0 +1,69 @@
+"""`benchmarks/verdict_table.py`: one row per scene and regime, from the two kinds of result
+file, on synthetic records whose cells are worked out by hand; and the committed table is
+the one the committed results make."""
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import verdict_table  # noqa: E402
+
+
+def _verdict(diffs: list[float], verdict: str) -> dict:
+    mean = sum(diffs) / len(diffs)
+    spread = (sum((d - mean) ** 2 for d in diffs) / (len(diffs) - 1)) ** 0.5 / len(diffs) ** 0.5
+    return {
+        "seeds": list(range(len(diffs))),
+        "diffs": diffs,
+        "mean": mean,
+        "stderr": spread,
+        "verdict": verdict,
+    }
+
+
+def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp_path):
+    # Differences 1, 2, 3: mean 2, standard error 1/sqrt(3) = 0.577.
+    psnr = _verdict([1.0, 2.0, 3.0], "ahead")
+    ssim = _verdict([0.01, 0.01, 0.04], "level")
+    summary = {
+        "verdict": {
+            "builtin": {
+                "psnr": psnr,
+                "ssim": ssim,
+                "lpips": None,
+                "depth_mae": None,
+                "collapsed": {"mixnerf": [], "mipnerf": [1]},
+                "seeds": [0, 1, 2],
+            }
+        }
+    }
+    (tmp_path / "fidelity_cpu_triplane_summary.json").write_text(json.dumps(summary))
+    split = {"psnr": {"verdict": psnr}, "ssim": {"verdict": ssim}, "lpips": {"verdict": None}}
+    sweep = {
+        "scenes": {
+            "builtin": {
+                "seeds": [0, 1, 2],
+                "val": split,
+                "test": {**split, "depth_mae": {"verdict": None}},
+                "collapsed": {"mixnerf": [2], "baseline": [0, 1]},
+            }
+        }
+    }
+    (tmp_path / "quickstart_verdict_cpu.json").write_text(json.dumps(sweep))
+
+    lines = verdict_table.markdown(tmp_path).splitlines()
+    assert len(lines) == 2 + len(verdict_table.ROWS)
+    quick, protocol = lines[2], lines[3]
+    assert quick.startswith("| built-in | 4 x 64x64 | quick start")
+    assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 1 / 2 of 3 |" in quick
+    assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 0 / 1 of 3 |" in protocol
+    # The protocol's file has no fern: the row says not made, as do the rows of absent files.
+    assert "not made (`results/fidelity_cpu_triplane_summary.json`)" in lines[4]
+    assert "not made (`results/full_res_lego_cpu.json`)" in lines[-1]
+
+
+def test_the_committed_table_is_the_one_the_committed_results_make():
+    committed = (verdict_table.RESULTS / "verdict_cpu.md").read_text()
+    assert committed == verdict_table.markdown()
