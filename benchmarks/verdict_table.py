@@ -64,7 +64,7 @@ ROWS = (
     Row(
         "fern",
         "3 x 504x378",
-        "llff3_grid, 14,000 steps (12 epochs)",
+        "llff3_grid, 14,000 steps (12.5 epochs)",
         "built-in's and fern's test views, earlier (grid)",
         "full_res_fern_cpu.json",
         "fern",
@@ -88,27 +88,38 @@ ROWS = (
 )
 
 
-def row_verdicts(record: dict[str, Any], key: str) -> tuple[dict[str, Any], list[int], list[int], int] | None:
-    """`({metric: verdict}, MixNeRF's collapsed seeds, the baseline's, runs)` of one scene of a
-    result file: a `fidelity.py` summary or a `sweep_verdict.py` record; `None` without it."""
-    if "verdict" in record:  # fidelity.py's summary: the test views at the end of training
+@dataclass(frozen=True)
+class Found:
+    cells: dict[str, Any]  # metric -> paired verdict on the test views (None: not scored)
+    seeds: list[int]  # the seeds both methods finished (the pairs)
+    collapsed: tuple[list[int], list[int]]  # MixNeRF's collapsed seeds, the baseline's
+    runs: tuple[int, int]  # how many runs each method finished
+
+
+def row_verdicts(record: dict[str, Any], key: str, source: str = "") -> Found | None:
+    """The verdicts of scene `key` in a result file: a `fidelity.py` summary (the test views at
+    the end of training) or a `sweep_verdict.py` record (its test row); `None` without the
+    scene. A sweep record must compare MixNeRF (first) with its baseline (second)."""
+    if "verdict" in record:
         found = record["verdict"].get(key)
         if found is None:
             return None
-        runs = len(found["seeds"])
-        fell = found["collapsed"]
-        return {m: found.get(m) for _, m, _, _ in VERDICT_METRICS}, fell["mixnerf"], fell["mipnerf"], runs
+        runs = len(found["seeds"])  # the protocol trains both methods on every seed
+        cells = {m: found.get(m) for _, m, _, _ in VERDICT_METRICS}
+        fell = (found["collapsed"]["mixnerf"], found["collapsed"]["mipnerf"])
+        return Found(cells, found["seeds"], fell, (runs, runs))
+    if "scenes" not in record:
+        raise SystemExit(f"{source}: neither a fidelity.py summary nor a sweep_verdict.py record")
+    names = record.get("names", ["MixNeRF", "baseline"])
+    if names != ["MixNeRF", "baseline"]:
+        raise SystemExit(f"{source}: compares {names[0]} with {names[1]}, not MixNeRF with its baseline")
     found = record["scenes"].get(key)
     if found is None:
         return None
-    fell = found["collapsed"]
-    runs = len(found["seeds"])
-    return (
-        {m: found["test"][m]["verdict"] for _, m, _, _ in VERDICT_METRICS},
-        fell["mixnerf"],
-        fell["baseline"],
-        runs,
-    )
+    cells = {m: found["test"][m]["verdict"] for _, m, _, _ in VERDICT_METRICS}
+    fell = (found["collapsed"]["mixnerf"], found["collapsed"]["baseline"])
+    runs = (len(found["runs"]["mixnerf"]), len(found["runs"]["baseline"]))
+    return Found(cells, found["seeds"], fell, runs)
 
 
 def markdown(results: Path = RESULTS) -> str:
@@ -119,19 +130,21 @@ def markdown(results: Path = RESULTS) -> str:
         + " | collapsed (MixNeRF / baseline) |",
         "|---|---|---|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
     ]
+    digits = {m: d for _, m, _, d in VERDICT_METRICS}
+    blanks = " | ".join("" for _ in VERDICT_METRICS)
     for row in ROWS:
         head = f"| {row.scene} | {row.images} | {row.training} | {row.chosen_on} | "
         path = results / row.source
-        found = row_verdicts(json.loads(path.read_text()), row.key) if path.is_file() else None
-        if found is None:
-            blanks = " | ".join("" for _ in VERDICT_METRICS)
+        if not path.is_file():
             lines.append(head + f"not made (`results/{row.source}`) | {blanks} | |")
             continue
-        cells, mix_fell, base_fell, runs = found
-        seeds = max((len(v["seeds"]) for v in cells.values() if v is not None), default=0)
-        digits = {m: d for _, m, _, d in VERDICT_METRICS}
-        body = " | ".join(_cell(cells[m], digits[m]) for _, m, _, _ in VERDICT_METRICS)
-        lines.append(head + f"{seeds} | {body} | {len(mix_fell)} / {len(base_fell)} of {runs} |")
+        found = row_verdicts(json.loads(path.read_text()), row.key, f"results/{row.source}")
+        if found is None:
+            lines.append(head + f"not made (no {row.key} in `results/{row.source}`) | {blanks} | |")
+            continue
+        body = " | ".join(_cell(found.cells[m], digits[m]) for _, m, _, _ in VERDICT_METRICS)
+        fell = " / ".join(f"{len(c)} of {n}" for c, n in zip(found.collapsed, found.runs, strict=True))
+        lines.append(head + f"{len(found.seeds)} | {body} | {fell} |")
     return "\n".join(lines) + "\n"
 
 

@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import verdict_table  # noqa: E402
@@ -40,16 +42,23 @@ def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp
         }
     }
     (tmp_path / "fidelity_cpu_triplane_summary.json").write_text(json.dumps(summary))
-    split = {"psnr": {"verdict": psnr}, "ssim": {"verdict": ssim}, "lpips": {"verdict": None}}
+    # The sweep's validation row differs from its test row, so reading the wrong split shows.
+    val = {
+        m: {"verdict": _verdict([-1.0, -1.0, -1.3], "behind")} for m in ("psnr", "ssim", "lpips", "depth_mae")
+    }
+    test = {"psnr": {"verdict": psnr}, "ssim": {"verdict": ssim}, "lpips": {"verdict": None}}
     sweep = {
+        "names": ["MixNeRF", "baseline"],
         "scenes": {
             "builtin": {
                 "seeds": [0, 1, 2],
-                "val": split,
-                "test": {**split, "depth_mae": {"verdict": None}},
+                "val": val,
+                "test": {**test, "depth_mae": {"verdict": None}},
                 "collapsed": {"mixnerf": [2], "baseline": [0, 1]},
+                # The baseline finished a fourth, unpaired seed: its count is its own.
+                "runs": {"mixnerf": [0, 1, 2], "baseline": [0, 1, 2, 3]},
             }
-        }
+        },
     }
     (tmp_path / "quickstart_verdict_cpu.json").write_text(json.dumps(sweep))
 
@@ -57,13 +66,22 @@ def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp
     assert len(lines) == 2 + len(verdict_table.ROWS)
     quick, protocol = lines[2], lines[3]
     assert quick.startswith("| built-in | 4 x 64x64 | quick start")
-    assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 1 / 2 of 3 |" in quick
-    assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 0 / 1 of 3 |" in protocol
-    # The protocol's file has no fern: the row says not made, as do the rows of absent files.
-    assert "not made (`results/fidelity_cpu_triplane_summary.json`)" in lines[4]
+    assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 1 of 3 / 2 of 4 |" in quick
+    assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 0 of 3 / 1 of 3 |" in protocol
+    # The protocol's file has no fern; the full-resolution files are absent.
+    assert "not made (no fern in `results/fidelity_cpu_triplane_summary.json`)" in lines[4]
     assert "not made (`results/full_res_lego_cpu.json`)" in lines[-1]
+
+    # A sweep record of something else against MixNeRF is refused, not shown as MixNeRF's.
+    sweep["names"] = ["background", "MixNeRF"]
+    (tmp_path / "quickstart_verdict_cpu.json").write_text(json.dumps(sweep))
+    with pytest.raises(SystemExit, match="compares background with MixNeRF"):
+        verdict_table.markdown(tmp_path)
 
 
 def test_the_committed_table_is_the_one_the_committed_results_make():
     committed = (verdict_table.RESULTS / "verdict_cpu.md").read_text()
     assert committed == verdict_table.markdown()
+    # benchmarks/README.md opens its fidelity section with the same table.
+    readme = (verdict_table.RESULTS.parent / "README.md").read_text()
+    assert committed in readme
