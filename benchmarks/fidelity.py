@@ -400,6 +400,15 @@ def paired_verdict(
     return {"seeds": seeds, "diffs": diffs.tolist(), "mean": mean, "stderr": stderr, "verdict": verdict}
 
 
+def verdict_cell(found: dict[str, Any] | None, digits: int = 2) -> str:
+    """A table cell for a `paired_verdict`: "+0.89 ± 0.77: level" ("n/a" without one; no
+    standard error from one seed)."""
+    if found is None:
+        return "n/a"
+    stderr = "" if np.isnan(found["stderr"]) else f" ± {found['stderr']:.{digits}f}"
+    return f"{found['mean']:+.{digits}f}{stderr}: {found['verdict']}"
+
+
 def collapsed(values: dict[int, float]) -> list[int]:
     """The seeds whose held-out PSNR lies more than `COLLAPSE_DB` below the median of theirs."""
     if not values:
@@ -440,11 +449,7 @@ def verdict_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any]
             base = {s: v[key] for s, v in ends["mipnerf"].items() if v.get(key) is not None}
             found = paired_verdict(mix, base, higher)
             row[key] = found
-            if found is None:
-                cells.append("n/a")
-            else:
-                stderr = "" if np.isnan(found["stderr"]) else f" ± {found['stderr']:.{digits}f}"
-                cells.append(f"{found['mean']:+.{digits}f}{stderr}: {found['verdict']}")
+            cells.append(verdict_cell(found, digits))
         falls = {m: collapsed({s: v["psnr"] for s, v in ends[m].items()}) for m in METHODS}
         row["collapsed"] = falls
         row["seeds"] = sorted(set(ends["mixnerf"]) & set(ends["mipnerf"]))
@@ -467,12 +472,6 @@ def ablation_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any
     ]
     found: dict[str, Any] = {}
 
-    def cell(result: dict[str, Any] | None) -> str:
-        if result is None:
-            return "n/a"
-        stderr = "" if np.isnan(result["stderr"]) else f" ± {result['stderr']:.2f}"
-        return f"{result['mean']:+.2f}{stderr}: {result['verdict']}"
-
     for ablation in ablations:
         per_scene: dict[str, Any] = {}
         for scene in PROTOCOL:
@@ -494,8 +493,8 @@ def ablation_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any
             }
             per_scene[scene] = row
             lines.append(
-                f"| {ablation} | {scene} | {len(ends[ablation])} | {cell(row['val_vs_mixnerf'])} "
-                f"| {cell(row['test_vs_mixnerf'])} | {cell(row['test_vs_baseline'])} "
+                f"| {ablation} | {scene} | {len(ends[ablation])} | {verdict_cell(row['val_vs_mixnerf'])} "
+                f"| {verdict_cell(row['test_vs_mixnerf'])} | {verdict_cell(row['test_vs_baseline'])} "
                 f"| {len(row['collapsed'])} of {len(ends[ablation])} |"
             )
         choices = [row["val_vs_mixnerf"] for row in per_scene.values()]

@@ -19,11 +19,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fidelity import COLLAPSE_DB, VERDICT_METRICS, collapsed, paired_verdict  # noqa: E402
+from fidelity import COLLAPSE_DB, VERDICT_METRICS, collapsed, paired_verdict, verdict_cell  # noqa: E402
 
 SPLITS = ("val", "test")
 
@@ -64,13 +62,6 @@ def pairing_notes(
             if steps[0] != steps[1]:
                 notes.append(f"{scene}/seed_{seed}: paired although trained {steps[0]} and {steps[1]} steps")
     return notes
-
-
-def _cell(found: dict[str, Any] | None, digits: int) -> str:
-    if found is None:
-        return "n/a"
-    stderr = "" if np.isnan(found["stderr"]) else f" ± {found['stderr']:.{digits}f}"
-    return f"{found['mean']:+.{digits}f}{stderr}: {found['verdict']}"
 
 
 def _values(runs: dict[int, dict[str, Any]], split: str, key: str) -> dict[int, float]:
@@ -122,7 +113,9 @@ def markdown(table: dict[str, Any], title: str, names: tuple[str, str] = ("MixNe
     ]
     for scene, row in table.items():
         for split in SPLITS:
-            cells = [_cell(row[split][key]["verdict"], digits) for _, key, _, digits in VERDICT_METRICS]
+            cells = [
+                verdict_cell(row[split][key]["verdict"], digits) for _, key, _, digits in VERDICT_METRICS
+            ]
             falls = (
                 " / ".join(
                     f"{len(row['collapsed'][m])} of {len(row['runs'][m])}" for m in ("mixnerf", "baseline")

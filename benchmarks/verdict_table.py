@@ -20,8 +20,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fidelity import VERDICT_METRICS  # noqa: E402
-from sweep_verdict import _cell  # noqa: E402
+from fidelity import VERDICT_METRICS, verdict_cell  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -142,7 +141,7 @@ def markdown(results: Path = RESULTS) -> str:
         if found is None:
             lines.append(head + f"not made (no {row.key} in `results/{row.source}`) | {blanks} | |")
             continue
-        body = " | ".join(_cell(found.cells[m], digits[m]) for _, m, _, _ in VERDICT_METRICS)
+        body = " | ".join(verdict_cell(found.cells[m], digits[m]) for _, m, _, _ in VERDICT_METRICS)
         fell = " / ".join(f"{len(c)} of {n}" for c, n in zip(found.collapsed, found.runs, strict=True))
         lines.append(head + f"{len(found.seeds)} | {body} | {fell} |")
     return "\n".join(lines) + "\n"
