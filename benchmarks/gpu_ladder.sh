@@ -14,6 +14,7 @@
 # (default 540: a device command's limit is 600) and, where $OUT is set (the device machine's
 # return folder), packs every ladder file into $OUT/gpu_ladder.tar.gz after each rung and at
 # the end: unpack it into benchmarks/results/ here to keep the runs or to resume.
+# `python benchmarks/ladder_table.py --backend gpu` then puts the rungs side by side.
 #
 # On the device machine, from the repository root (the built-in scene needs no data):
 #     bash benchmarks/gpu_ladder.sh                     # carry: .whl (beartype's wheels)

@@ -53,6 +53,22 @@ ROWS = (
         "builtin",
     ),
     Row(
+        "built-in",
+        "4 x 32x32",
+        "protocol, MLP 4x64, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_ladder_4x64_summary.json",
+        "builtin",
+    ),
+    Row(
+        "built-in",
+        "4 x 32x32",
+        "protocol, MLP 4x128, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_ladder_4x128_summary.json",
+        "builtin",
+    ),
+    Row(
         "fern",
         "3 x 56x42",
         "protocol, tri-plane, 500 epochs",

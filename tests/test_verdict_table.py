@@ -68,8 +68,11 @@ def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp
     assert quick.startswith("| built-in | 4 x 64x64 | quick start")
     assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 1 of 3 / 2 of 4 |" in quick
     assert "| 3 | +2.00 ± 0.58: ahead | +0.020 ± 0.010: level | n/a | n/a | 0 of 3 / 1 of 3 |" in protocol
-    # The protocol's file has no fern; the full-resolution files are absent.
-    assert "not made (no fern in `results/fidelity_cpu_triplane_summary.json`)" in lines[4]
+    # The protocol's file has no fern; the ladder's and the full-resolution files are absent.
+    fern = next(line for line in lines if line.startswith("| fern | 3 x 56x42 |"))
+    assert "not made (no fern in `results/fidelity_cpu_triplane_summary.json`)" in fern
+    assert "not made (`results/fidelity_cpu_ladder_4x64_summary.json`)" in lines[4]
+    assert "not made (`results/fidelity_cpu_ladder_4x128_summary.json`)" in lines[5]
     assert "not made (`results/full_res_lego_cpu.json`)" in lines[-1]
 
     # A sweep record of something else against MixNeRF is refused, not shown as MixNeRF's.
