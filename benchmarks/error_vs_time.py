@@ -76,6 +76,7 @@ from harness import (
     override_keys,
     platform_tag,
     print_table,
+    pyplot,
     resolve,
     save_figure,
     scene_spec,
@@ -330,13 +331,8 @@ def judge_target(fast: dict, faithful: dict, budget: float, fraction: float) -> 
 def plot_scene(
     scene: str, records: list[dict], targets: list[dict], path: Path, budget: float, fraction: float
 ):
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not importable: no plots")
+    plt = pyplot("plots")
+    if plt is None:
         return
     fig, (by_time, by_step) = plt.subplots(1, 2, figsize=(12, 4.5))
     colours = {}

@@ -57,6 +57,7 @@ from harness import (
     machine_info,
     model_summary,
     platform_tag,
+    pyplot,
     save_figure,
     write_json,
     write_markdown,
@@ -569,13 +570,8 @@ def summarise(runs: list[dict[str, Any]]) -> tuple[str, dict[str, Any]]:
 
 
 def plot(runs: list[dict[str, Any]], out: Path, tag: str) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not importable: no plots")
+    plt = pyplot("plots")
+    if plt is None:
         return
     palette = [
         "tab:red",

@@ -57,6 +57,7 @@ import numpy as np
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import Config, load_config
+from mixnerf_eqx._util.curves import pyplot  # noqa: F401 (the benchmarks' plots use it)
 from mixnerf_eqx.data import Dataset, Views, load_dataset
 
 REPO = Path(__file__).resolve().parent.parent

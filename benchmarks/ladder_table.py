@@ -40,7 +40,7 @@ from fidelity import (  # noqa: E402
     read_runs,
     verdict_cell,
 )
-from harness import REPO, RESULTS, save_figure, write_json, write_markdown  # noqa: E402
+from harness import REPO, RESULTS, pyplot, save_figure, write_json, write_markdown  # noqa: E402
 
 SCENE = "builtin"
 METHOD_NAMES = {"mipnerf": "baseline", "mixnerf": "MixNeRF"}
@@ -199,13 +199,8 @@ def markdown(found: dict[str, Any]) -> str:
 
 
 def plot(found: dict[str, Any], path: Path) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not importable: no plot")
+    plt = pyplot("plot")
+    if plt is None:
         return
     figure, (held_out, training) = plt.subplots(1, 2, figsize=(11, 4))
     colours = {"mipnerf": "tab:blue", "mixnerf": "tab:red"}

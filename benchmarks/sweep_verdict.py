@@ -149,7 +149,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "baseline", type=Path, help="the baseline sweep's folder (second; same scenes and seeds)"
     )
-    parser.add_argument("--title", default="MixNeRF against its baseline", help="the table's title")
+    parser.add_argument(
+        "--title", help="the table's title (default: FIRST against SECOND, or MixNeRF against its baseline)"
+    )
     parser.add_argument(
         "--names",
         nargs=2,
@@ -159,6 +161,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out", type=Path, help="write STEM.json and STEM.md")
     args = parser.parse_args(argv)
+    if args.title is None:
+        first, second = args.names
+        args.title = (
+            "MixNeRF against its baseline"
+            if (first, second) == ("MixNeRF", "baseline")
+            else f"{first} against {second}"
+        )
 
     mix, mix_open = read_sweep(args.mixnerf)
     base, base_open = read_sweep(args.baseline)

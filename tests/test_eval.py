@@ -260,3 +260,22 @@ def test_curves_survive_a_skipped_step_and_a_line_cut_short(tmp_path):
     steps, evaluations = read_log(tmp_path / "train_log.jsonl")
     assert [entry["step"] for entry in steps] == [10, 20, 30] and len(evaluations) == 1
     assert plot_curves(tmp_path) == tmp_path / "curves.png"
+
+
+def test_without_matplotlib_plots_are_skipped_with_a_word(tmp_path, capsys, monkeypatch):
+    """Without matplotlib a run's curves and a benchmark's plots are skipped, saying what is
+    missing and how to install it; nothing is written."""
+    from mixnerf_eqx._util.curves import plot_curves, pyplot
+
+    (tmp_path / "train_log.jsonl").write_text(json.dumps({"step": 10, "loss": 1.0, "psnr": 10.0}) + "\n")
+    for name in ("matplotlib", "matplotlib.pyplot"):
+        monkeypatch.setitem(sys.modules, name, None)  # `import` now raises ImportError
+    assert pyplot("plots") is None
+    assert (
+        "no plots: matplotlib is not installed (pip install 'mixnerf_eqx[plots]')" in capsys.readouterr().out
+    )
+    assert plot_curves(tmp_path) is None
+    assert "no curves: matplotlib is not installed" in capsys.readouterr().out
+    assert not (tmp_path / "curves.png").exists()
+    monkeypatch.undo()
+    assert pyplot("plots") is not None

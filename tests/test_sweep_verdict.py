@@ -46,6 +46,13 @@ def test_paired_verdicts_per_split_collapses_and_unfinished_runs(tmp_path, capsy
     assert "| fern | test | 3 | +1.00 ± 0.12: ahead |" in printed
     record = json.loads(out.with_suffix(".json").read_text())
     assert record["unfinished"]["mixnerf"] == ["fern/seed_3"]
+    assert record["title"] == "t"
+
+    # Without --title the title follows --names: a remedy's table is not called MixNeRF's.
+    assert sweep_verdict.main([str(mix), str(base), "--names", "no ramp", "MixNeRF", "--out", str(out)]) == 0
+    assert out.with_suffix(".md").read_text().startswith("### no ramp against MixNeRF\n")
+    assert sweep_verdict.main([str(mix), str(base), "--out", str(out)]) == 0
+    assert json.loads(out.with_suffix(".json").read_text())["title"] == "MixNeRF against its baseline"
 
 
 def test_a_collapsed_run_and_too_few_seeds(tmp_path):

@@ -6,6 +6,7 @@ Needs matplotlib (the `plots` extra); without it `plot_curves` says so and write
 import json
 import math
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 # Entries that are not loss terms: plotted in their own panels, or not at all.
@@ -24,6 +25,20 @@ def read_log(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
         if isinstance(entry, dict) and "step" in entry:
             (evaluations if "eval" in entry else steps).append(entry)
     return steps, evaluations
+
+
+def pyplot(what: str) -> ModuleType | None:
+    """`matplotlib.pyplot` on the file-only Agg backend, or `None` where matplotlib is not
+    installed, after printing that there are no `what` (e.g. "plots") and how to get them."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print(f"no {what}: matplotlib is not installed (pip install 'mixnerf_eqx[plots]')")
+        return None
+    return plt
 
 
 def _value(entry: dict[str, Any], name: str) -> float:
@@ -46,13 +61,8 @@ def plot_curves(run_dir: str | Path, out: str | Path | None = None) -> Path | No
     if not log.is_file():
         print(f"no curves: {log} does not exist")
         return None
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("no curves: matplotlib is not installed (pip install 'mixnerf_eqx[plots]')")
+    plt = pyplot("curves")
+    if plt is None:
         return None
     steps, evaluations = read_log(log)
     if not steps:
