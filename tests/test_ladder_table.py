@@ -159,6 +159,17 @@ def test_main_writes_the_table_the_summary_and_the_plot(tmp_path):
     assert ladder_table.main(["--results", str(tmp_path), "--backend", "gpu"]) == 1  # no GPU rungs
 
 
+def test_without_matplotlib_the_table_is_written_and_the_plot_skipped(tmp_path, capsys, monkeypatch):
+    curve = [_entry(1, 10.0, 11.0, 12.0), _entry(2, 11.0, 12.0, 13.0)]
+    runs = [_protocol_run(m, s, 2, 16, curve) for m in ("mixnerf", "mipnerf") for s in (0, 1)]
+    _write(tmp_path / "fidelity_cpu_ladder_2x16.jsonl", runs)
+    for name in ("matplotlib", "matplotlib.pyplot"):
+        monkeypatch.setitem(sys.modules, name, None)  # `import` now raises ImportError
+    assert ladder_table.main(["--results", str(tmp_path)]) == 0
+    assert "no plot: matplotlib is not installed" in capsys.readouterr().out
+    assert (tmp_path / "ladder_cpu.md").is_file() and not (tmp_path / "ladder_cpu.png").exists()
+
+
 def _committed_rungs() -> list[Path]:
     """The rung files git tracks (all that are there outside a git checkout): a training that
     is appending runs to a rung file does not change what the committed table must be."""
