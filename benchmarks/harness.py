@@ -57,7 +57,6 @@ import numpy as np
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import Config, load_config
-from mixnerf_eqx._util.curves import pyplot  # noqa: F401 (the benchmarks' plots use it)
 from mixnerf_eqx.data import Dataset, Views, load_dataset
 
 REPO = Path(__file__).resolve().parent.parent
@@ -542,6 +541,21 @@ def write_markdown(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(f"<!-- made by: {command_line()} -->\n\n{text}")
     print(f"written to {path}")
+
+
+def pyplot(what: str) -> Any:
+    """`matplotlib.pyplot` on the file-only Agg backend for a benchmark's plots, or `None`
+    where matplotlib is not installed, after printing that there are no `what` (e.g. "plots").
+    (The package's run curves have their own twin of this: benchmarks use the public API only.)"""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print(f"no {what}: matplotlib is not installed (pip install 'mixnerf_eqx[plots]')")
+        return None
+    return plt
 
 
 def save_figure(figure: Any, path: Path, dpi: int = 120) -> None:

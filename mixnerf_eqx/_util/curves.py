@@ -29,7 +29,8 @@ def read_log(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
 
 def pyplot(what: str) -> ModuleType | None:
     """`matplotlib.pyplot` on the file-only Agg backend, or `None` where matplotlib is not
-    installed, after printing that there are no `what` (e.g. "plots") and how to get them."""
+    installed, after printing that there are no `what` (e.g. "plots") and how to get them.
+    The benchmarks, which use the public API only, have its twin (`benchmarks/harness.py`)."""
     try:
         import matplotlib
 
