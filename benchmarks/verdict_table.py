@@ -55,6 +55,14 @@ ROWS = (
     Row(
         "built-in",
         "4 x 32x32",
+        "protocol, hash grid, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_hash_summary.json",
+        "builtin",
+    ),
+    Row(
+        "built-in",
+        "4 x 32x32",
         "protocol, MLP 4x64, 500 epochs",
         "fixed in advance",
         "fidelity_cpu_ladder_4x64_summary.json",
@@ -78,6 +86,14 @@ ROWS = (
     ),
     Row(
         "fern",
+        "3 x 56x42",
+        "protocol, hash grid, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_hash_summary.json",
+        "fern",
+    ),
+    Row(
+        "fern",
         "3 x 504x378",
         "llff3_grid, 14,000 steps (12.5 epochs)",
         "built-in's and fern's test views, earlier (grid)",
@@ -90,6 +106,14 @@ ROWS = (
         "protocol, tri-plane, 500 epochs",
         "fixed in advance",
         "fidelity_cpu_triplane_summary.json",
+        "lego",
+    ),
+    Row(
+        "lego",
+        "4 x 40x40",
+        "protocol, hash grid, 500 epochs",
+        "fixed in advance",
+        "fidelity_cpu_hash_summary.json",
         "lego",
     ),
     Row(
