@@ -28,7 +28,7 @@ where it stopped (and a table can be grown over several sessions).
 Outputs (`--out`, default `benchmarks/results/`; the tag is the backend, then the field
 unless it is the MLP): `fidelity_<tag>.jsonl` (one line per run, with its curve),
 `fidelity_<tag>.md` (the verdict per scene: paired differences MixNeRF - baseline over seeds
-with their standard error, and the collapsed runs; then mean and spread over seeds at the end
+with the half-width of their Student-t 95% interval, and the failed runs; then mean and spread over seeds at the end
 and at each curve's best point on the validation views), `fidelity_<tag>_summary.json` (the
 table's numbers) and
 `fidelity_<tag>_<scene>.png` (held-out and training PSNR against step); with `--diagnose`,
@@ -378,44 +378,74 @@ VERDICT_METRICS = (
     ("LPIPS", "lpips", False, 3),
     ("depth MAE", "depth_mae", False, 4),
 )
-COLLAPSE_DB = 2.0  # a run collapsed when its held-out PSNR is this far below its method's median
+# A run failed when its held-out PSNR lies this far below the median of the baseline's runs on
+# the same scene (the baseline's own runs are held to the same line). Absolute, so it counts
+# failures that are the majority of a method's runs.
+FAIL_DB = 3.0
+CONFIDENCE = 0.95  # the two-sided level of the paired intervals
+
+
+def t_half_width(stderr: float, count: int, confidence: float = CONFIDENCE) -> float:
+    """The half-width of the Student-t interval of a mean of `count` values (`count - 1`
+    degrees of freedom) with standard error `stderr`; nan for fewer than two values."""
+    from scipy import stats
+
+    if count < 2:
+        return float("nan")
+    return float(stats.t.ppf(0.5 + confidence / 2, count - 1) * stderr)
+
+
+def paired_from_diffs(seeds: list[int], diffs: list[float], higher_is_better: bool) -> dict[str, Any]:
+    """The verdict of paired differences: mean, standard error, the Student-t 95% half-width
+    (n - 1 degrees of freedom) and "ahead" or "behind" only when the interval excludes zero,
+    else "level"; fewer than 3 seeds give no verdict."""
+    array = np.asarray(diffs, np.float64)
+    mean = float(array.mean())
+    stderr = float(array.std(ddof=1) / np.sqrt(array.size)) if array.size > 1 else float("nan")
+    half = t_half_width(stderr, array.size)
+    if array.size < 3:
+        verdict = f"{array.size} seed{'s' if array.size > 1 else ''}: no verdict"
+    else:
+        better = mean if higher_is_better else -mean
+        verdict = "ahead" if better > half else "behind" if better < -half else "level"
+    return {
+        "seeds": list(seeds),
+        "diffs": array.tolist(),
+        "mean": mean,
+        "stderr": stderr,
+        "half_width_95": half,
+        "verdict": verdict,
+    }
 
 
 def paired_verdict(
     mix: dict[int, float], base: dict[int, float], higher_is_better: bool
 ) -> dict[str, Any] | None:
-    """The paired difference MixNeRF - baseline over the seeds both have: per seed, mean,
-    standard error, and "ahead", "behind" (beyond two standard errors) or "level"; `None`
-    without a shared seed."""
+    """The paired difference MixNeRF - baseline over the seeds both have (`paired_from_diffs`);
+    `None` without a shared seed."""
     seeds = sorted(set(mix) & set(base))
     if not seeds:
         return None
-    diffs = np.asarray([mix[s] - base[s] for s in seeds], np.float64)
-    mean = float(diffs.mean())
-    stderr = float(diffs.std(ddof=1) / np.sqrt(diffs.size)) if diffs.size > 1 else float("nan")
-    if diffs.size < 3:
-        verdict = f"{diffs.size} seed{'s' if diffs.size > 1 else ''}: no verdict"
-    else:
-        better = mean if higher_is_better else -mean
-        verdict = "ahead" if better > 2 * stderr else "behind" if better < -2 * stderr else "level"
-    return {"seeds": seeds, "diffs": diffs.tolist(), "mean": mean, "stderr": stderr, "verdict": verdict}
+    return paired_from_diffs(seeds, [mix[s] - base[s] for s in seeds], higher_is_better)
 
 
 def verdict_cell(found: dict[str, Any] | None, digits: int = 2) -> str:
-    """A table cell for a `paired_verdict`: "+0.89 ± 0.77: level" ("n/a" without one; no
-    standard error from one seed)."""
+    """A table cell for a `paired_verdict`: "+0.89 ± 3.32: level", the mean and the half-width
+    of its Student-t 95% interval ("n/a" without one; no interval from one seed)."""
     if found is None:
         return "n/a"
-    stderr = "" if np.isnan(found["stderr"]) else f" ± {found['stderr']:.{digits}f}"
-    return f"{found['mean']:+.{digits}f}{stderr}: {found['verdict']}"
+    half = found["half_width_95"]
+    spread = "" if np.isnan(half) else f" ± {half:.{digits}f}"
+    return f"{found['mean']:+.{digits}f}{spread}: {found['verdict']}"
 
 
-def collapsed(values: dict[int, float]) -> list[int]:
-    """The seeds whose held-out PSNR lies more than `COLLAPSE_DB` below the median of theirs."""
-    if not values:
+def failed(values: dict[int, float], baseline: dict[int, float]) -> list[int]:
+    """The seeds whose held-out PSNR lies more than `FAIL_DB` below the median of the
+    baseline's PSNRs on the scene (`values` may be the baseline's own)."""
+    if not values or not baseline:
         return []
-    median = float(np.median(list(values.values())))
-    return [seed for seed, value in values.items() if value < median - COLLAPSE_DB]
+    line = float(np.median(list(baseline.values()))) - FAIL_DB
+    return sorted(seed for seed, value in values.items() if value < line)
 
 
 def _best_entry(run: dict[str, Any]) -> tuple[dict[str, Any], str]:
@@ -431,7 +461,7 @@ def verdict_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any]
     lines = [
         "| scene | seeds | "
         + " | ".join(f"{name} (MixNeRF - baseline)" for name, *_ in VERDICT_METRICS)
-        + " | collapsed runs (MixNeRF / baseline) |",
+        + " | failed runs (MixNeRF / baseline) |",
         "|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
     ]
     verdicts: dict[str, Any] = {}
@@ -451,8 +481,9 @@ def verdict_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any]
             found = paired_verdict(mix, base, higher)
             row[key] = found
             cells.append(verdict_cell(found, digits))
-        falls = {m: collapsed({s: v["psnr"] for s, v in ends[m].items()}) for m in METHODS}
-        row["collapsed"] = falls
+        psnrs = {m: {s: v["psnr"] for s, v in ends[m].items()} for m in METHODS}
+        falls = {m: failed(psnrs[m], psnrs["mipnerf"]) for m in METHODS}
+        row["failed"] = falls
         row["seeds"] = sorted(set(ends["mixnerf"]) & set(ends["mipnerf"]))
         verdicts[scene] = row
         counts = " / ".join(f"{len(falls[m])} of {len(ends[m])}" for m in ("mixnerf", "mipnerf"))
@@ -468,7 +499,7 @@ def ablation_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any
     ablations = sorted({r["method"] for r in runs} - set(METHODS))
     lines = [
         "| ablation | scene | seeds | val PSNR (ablation - MixNeRF), chooses "
-        "| test PSNR (ablation - MixNeRF) | test PSNR (ablation - baseline) | collapsed runs (ablation) |",
+        "| test PSNR (ablation - MixNeRF) | test PSNR (ablation - baseline) | failed runs (ablation) |",
         "|---|---|---|---|---|---|---|",
     ]
     found: dict[str, Any] = {}
@@ -490,13 +521,13 @@ def ablation_table(runs: list[dict[str, Any]]) -> tuple[list[str], dict[str, Any
                 "val_vs_mixnerf": paired_verdict(psnr(ablation, "val"), psnr("mixnerf", "val"), True),
                 "test_vs_mixnerf": paired_verdict(psnr(ablation, "test"), psnr("mixnerf", "test"), True),
                 "test_vs_baseline": paired_verdict(psnr(ablation, "test"), psnr("mipnerf", "test"), True),
-                "collapsed": collapsed(psnr(ablation, "test")),
+                "failed": failed(psnr(ablation, "test"), psnr("mipnerf", "test")),
             }
             per_scene[scene] = row
             lines.append(
                 f"| {ablation} | {scene} | {len(ends[ablation])} | {verdict_cell(row['val_vs_mixnerf'])} "
                 f"| {verdict_cell(row['test_vs_mixnerf'])} | {verdict_cell(row['test_vs_baseline'])} "
-                f"| {len(row['collapsed'])} of {len(ends[ablation])} |"
+                f"| {len(row['failed'])} of {len(ends[ablation])} |"
             )
         choices = [row["val_vs_mixnerf"] for row in per_scene.values()]
         wins = len(per_scene) == len(PROTOCOL) and all(
@@ -627,8 +658,9 @@ def report(path: Path, tag: str) -> None:
         f"{len(runs)} runs from `{path.relative_to(REPO) if path.is_relative_to(REPO) else path.name}`. "
         "The settings are the protocol's, fixed in advance; best points are chosen on the validation "
         "views; every score is on the test views. The verdict: MixNeRF - baseline paired by seed, "
-        "mean ± standard error, 'ahead' or 'behind' beyond two standard errors; a run collapsed "
-        f"when its test PSNR lies more than {COLLAPSE_DB:g} dB below its method's median. Then: "
+        "mean ± the half-width of its Student-t 95% interval (n - 1 degrees of freedom), 'ahead' or "
+        "'behind' only when the interval excludes zero; a run failed when its test PSNR lies more "
+        f"than {FAIL_DB:g} dB below the median of the baseline's runs on the scene. Then: "
         "mean ± sample standard deviation over seeds. A MixNeRF ablation (a remedy) is compared "
         "with MixNeRF on the validation views, which choose, and on the test views for the record; "
         "it is adopted only if it is ahead on the validation views of every scene. "

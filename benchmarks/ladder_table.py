@@ -13,9 +13,11 @@ the commands). This script puts the rungs side by side, smallest MLP first:
   validation PSNR and how far the end falls below it, the training views' PSNR at the end and
   its gap to the test views', the runs that overfit (from the best point to the end held-out
   PSNR falls by more than 0.1 dB while training PSNR rises: `fidelity.summarise`'s rule) and
-  the runs that collapsed (test PSNR more than 2 dB below the method's median on the rung);
+  the runs that failed (test PSNR more than 3 dB below the median of the baseline's runs on
+  the rung);
 - per rung: MixNeRF - baseline paired by seed on the test views at the end (PSNR, depth MAE),
-  mean ± standard error, "ahead"/"behind" beyond two standard errors.
+  mean ± the half-width of its Student-t 95% interval, "ahead"/"behind" only when the
+  interval excludes zero.
 
 Writes `results/ladder_<backend>.md`, `results/ladder_<backend>_summary.json` and
 `results/ladder_<backend>.png` (end test and training PSNR against the MLP's parameter count).
@@ -32,10 +34,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fidelity import (  # noqa: E402
-    COLLAPSE_DB,
+    FAIL_DB,
     PROTOCOL,
     _best_entry,
-    collapsed,
+    failed,
     paired_verdict,
     read_runs,
     verdict_cell,
@@ -80,8 +82,9 @@ def _fmt(stats: tuple[float, float], digits: int = 2, sign: bool = False) -> str
     return head if np.isnan(sd) else f"{head} ± {sd:.{digits}f}"
 
 
-def method_row(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """One method's figures on one rung, per seed and as mean and sample standard deviation."""
+def method_row(runs: list[dict[str, Any]], baseline: dict[int, float]) -> dict[str, Any]:
+    """One method's figures on one rung, per seed and as mean and sample standard deviation;
+    `baseline` holds the baseline's end test PSNR per seed, the line for failed runs."""
     runs = sorted(runs, key=lambda r: r["seed"])
     ends = [r["final"]["test"]["psnr"] for r in runs]
     chosen = [_best_entry(r) for r in runs]
@@ -102,7 +105,7 @@ def method_row(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "end_train_psnr": train,
         "gap": [t - e for t, e in zip(train, ends, strict=True)],
         "overfit_seeds": [r["seed"] for r, o in zip(runs, overfit, strict=True) if o],
-        "collapsed_seeds": collapsed({r["seed"]: e for r, e in zip(runs, ends, strict=True)}),
+        "failed_seeds": failed({r["seed"]: e for r, e in zip(runs, ends, strict=True)}, baseline),
     }
 
 
@@ -126,7 +129,11 @@ def ladder(results: Path, backend: str, count_parameters: bool = True) -> dict[s
             "file": path.name,
             "epochs": sorted({r["epochs"] for r in runs}),
             "parameters": {m: parameter_count(g[0]) for m, g in by_method.items() if g and count_parameters},
-            "methods": {m: method_row(g) for m, g in by_method.items() if g},
+            "methods": {
+                m: method_row(g, {r["seed"]: r["final"]["test"]["psnr"] for r in by_method["mipnerf"]})
+                for m, g in by_method.items()
+                if g
+            },
         }
         for key, higher in (("psnr", True), ("depth_mae", False)):
             mix = {r["seed"]: r["final"]["test"].get(key) for r in by_method["mixnerf"]}
@@ -154,7 +161,7 @@ def markdown(found: dict[str, Any]) -> str:
         "in the summary JSON.",
         "",
         "| MLP | parameters | epochs | method | seeds | end test PSNR | test PSNR at the best point "
-        "(chosen on) | end - best | end train PSNR | train - test | overfit runs | collapsed runs |",
+        "(chosen on) | end - best | end train PSNR | train - test | overfit runs | failed runs |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for rung in found["rungs"]:
@@ -177,7 +184,7 @@ def markdown(found: dict[str, Any]) -> str:
                 _fmt(_mean_sd(row["end_train_psnr"])),
                 _fmt(_mean_sd(row["gap"])),
                 f"{len(row['overfit_seeds'])} of {n}",
-                f"{len(row['collapsed_seeds'])} of {n}",
+                f"{len(row['failed_seeds'])} of {n}",
             ]
             lines.append("| " + " | ".join(cells) + " |")
     lines += [
@@ -192,8 +199,10 @@ def markdown(found: dict[str, Any]) -> str:
     lines += [
         "",
         f"A run overfits when, from its best point to the end, its test PSNR falls by more than "
-        f"0.1 dB while its training PSNR rises; it collapsed when its end test PSNR lies more than "
-        f"{COLLAPSE_DB:g} dB below its method's median on the rung.",
+        f"0.1 dB while its training PSNR rises; it failed when its end test PSNR lies more than "
+        f"{FAIL_DB:g} dB below the median of the baseline's runs on the rung. MixNeRF - baseline: "
+        "mean ± the half-width of its Student-t 95% interval (n - 1 degrees of freedom); 'ahead' or "
+        "'behind' only when the interval excludes zero.",
     ]
     return "\n".join(lines) + "\n"
 

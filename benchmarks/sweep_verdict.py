@@ -5,10 +5,11 @@
 
 Each argument is a folder written by `python -m mixnerf_eqx.sweep` (`SCENE/seed_N/metrics.json`
 per finished run). For every scene both sweeps finished, and for the validation and the test
-views, the table gives MixNeRF - baseline paired by seed (mean ± standard error, "ahead" or
-"behind" only beyond two standard errors, `fidelity.paired_verdict`) for PSNR, SSIM, LPIPS and
-depth error where the scene knows its depth, and the runs that collapsed (test PSNR more than
-2 dB below their method's median on the scene). Validation views are where settings are
+views, the table gives MixNeRF - baseline paired by seed (mean ± the half-width of its
+Student-t 95% interval, "ahead" or "behind" only when the interval excludes zero,
+`fidelity.paired_verdict`) for PSNR, SSIM, LPIPS and depth error where the scene knows its
+depth, and the runs that failed (test PSNR more than 3 dB below the median of the second
+sweep's runs on the scene, or no test PSNR at all). Validation views are where settings are
 chosen; the test row is the record. Runs still in progress (no `metrics.json`) are listed and
 left out. `--out STEM` writes `STEM.json` and `STEM.md`.
 """
@@ -21,7 +22,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fidelity import COLLAPSE_DB, VERDICT_METRICS, collapsed, paired_verdict, verdict_cell  # noqa: E402
+from fidelity import FAIL_DB, VERDICT_METRICS, failed, paired_verdict, verdict_cell  # noqa: E402
 
 SPLITS = ("val", "test")
 
@@ -74,7 +75,7 @@ def verdicts(
     mix: dict[str, dict[int, dict[str, Any]]], base: dict[str, dict[int, dict[str, Any]]]
 ) -> dict[str, Any]:
     """Per scene both sweeps have: per split and metric the paired verdict, the per-seed
-    figures of each method, and the collapsed seeds of each method (on the test views)."""
+    figures of each method, and the failed seeds of each method (on the test views)."""
     table: dict[str, Any] = {}
     for scene in sorted(set(mix) & set(base)):
         row: dict[str, Any] = {"seeds": sorted(set(mix[scene]) & set(base[scene]))}
@@ -88,10 +89,11 @@ def verdicts(
                     "mixnerf": mix_values,
                     "baseline": base_values,
                 }
-        # A run without a test PSNR (it diverged: NaN is written as null) counts as collapsed.
-        row["collapsed"] = {
+        # A run without a test PSNR (it diverged: NaN is written as null) counts as failed.
+        reference = _values(base[scene], "test", "psnr")
+        row["failed"] = {
             name: sorted(
-                collapsed(_values(runs, "test", "psnr"))
+                failed(_values(runs, "test", "psnr"), reference)
                 + [seed for seed in runs if seed not in _values(runs, "test", "psnr")]
             )
             for name, runs in (("mixnerf", mix[scene]), ("baseline", base[scene]))
@@ -101,6 +103,21 @@ def verdicts(
     return table
 
 
+def runs_from_record(record: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The per-seed metrics a written record holds, as `read_sweep` gives them, so that its
+    verdicts can be re-made after the run folders are gone (`--remake`)."""
+    sweeps: tuple[dict[str, Any], dict[str, Any]] = ({}, {})
+    for scene, row in record["scenes"].items():
+        for sweep, name in zip(sweeps, ("mixnerf", "baseline"), strict=True):
+            runs = {int(seed): {"val": {}, "test": {}} for seed in row["runs"][name]}
+            for split in SPLITS:
+                for _, key, _, _ in VERDICT_METRICS:
+                    for seed, value in row[split][key][name].items():
+                        runs[int(seed)][split][key] = value
+            sweep[scene] = runs
+    return sweeps
+
+
 def markdown(table: dict[str, Any], title: str, names: tuple[str, str] = ("MixNeRF", "baseline")) -> str:
     first, second = names
     lines = [
@@ -108,7 +125,7 @@ def markdown(table: dict[str, Any], title: str, names: tuple[str, str] = ("MixNe
         "",
         "| scene | views | seeds | "
         + " | ".join(f"{name} ({first} - {second})" for name, *_ in VERDICT_METRICS)
-        + f" | collapsed ({first} / {second}) |",
+        + f" | failed ({first} / {second}) |",
         "|---|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
     ]
     for scene, row in table.items():
@@ -118,7 +135,7 @@ def markdown(table: dict[str, Any], title: str, names: tuple[str, str] = ("MixNe
             ]
             falls = (
                 " / ".join(
-                    f"{len(row['collapsed'][m])} of {len(row['runs'][m])}" for m in ("mixnerf", "baseline")
+                    f"{len(row['failed'][m])} of {len(row['runs'][m])}" for m in ("mixnerf", "baseline")
                 )
                 if split == "test"
                 else ""
@@ -134,9 +151,10 @@ def markdown(table: dict[str, Any], title: str, names: tuple[str, str] = ("MixNe
             lines.append(f"- {scene}, {label} test PSNR: {figures}")
     lines.append("")
     lines.append(
-        f"{first} - {second} paired by seed, mean ± standard error; 'ahead' or 'behind' only beyond "
-        f"two standard errors. A run collapsed when its test PSNR is more than {COLLAPSE_DB:g} dB "
-        "below its method's median on the scene."
+        f"{first} - {second} paired by seed, mean ± the half-width of its Student-t 95% interval "
+        "(n - 1 degrees of freedom); 'ahead' or 'behind' only when the interval excludes zero. A run "
+        f"failed when its test PSNR is more than {FAIL_DB:g} dB below the median of {second}'s runs "
+        "on the scene, or missing."
     )
     return "\n".join(lines) + "\n"
 
@@ -145,9 +163,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("mixnerf", type=Path, help="the MixNeRF sweep's folder (first)")
+    parser.add_argument("mixnerf", type=Path, nargs="?", help="the MixNeRF sweep's folder (first)")
     parser.add_argument(
-        "baseline", type=Path, help="the baseline sweep's folder (second; same scenes and seeds)"
+        "baseline", type=Path, nargs="?", help="the baseline sweep's folder (second; same scenes and seeds)"
+    )
+    parser.add_argument(
+        "--remake",
+        type=Path,
+        metavar="STEM",
+        help="re-make STEM.json and STEM.md from the per-seed figures STEM.json holds (no folders needed)",
     )
     parser.add_argument(
         "--title", help="the table's title (default: FIRST against SECOND, or MixNeRF against its baseline)"
@@ -161,6 +185,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out", type=Path, help="write STEM.json and STEM.md")
     args = parser.parse_args(argv)
+    if args.remake is not None:
+        return remake(args.remake)
+    if args.mixnerf is None or args.baseline is None:
+        parser.error("give the two sweep folders, or --remake STEM")
     if args.title is None:
         first, second = args.names
         args.title = (
@@ -194,6 +222,22 @@ def main(argv: list[str] | None = None) -> int:
         args.out.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
         args.out.with_suffix(".md").write_text(text)
         print(f"wrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.md')}")
+    return 0
+
+
+def remake(stem: Path) -> int:
+    """Re-makes a written record's verdicts and table from its per-seed figures."""
+    path = stem.with_suffix(".json")
+    if not path.is_file():
+        raise SystemExit(f"{path}: no such record")
+    record = json.loads(path.read_text())
+    mix, base = runs_from_record(record)
+    record["scenes"] = verdicts(mix, base)
+    text = markdown(record["scenes"], record["title"], tuple(record.get("names", ("MixNeRF", "baseline"))))
+    print(text, end="")
+    path.write_text(json.dumps(record, indent=1) + "\n")
+    stem.with_suffix(".md").write_text(text)
+    print(f"re-made {path} and {stem.with_suffix('.md')}")
     return 0
 
 

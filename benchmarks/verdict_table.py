@@ -5,9 +5,10 @@
 Gathers the rows from the result files the fidelity section of `benchmarks/README.md` is made
 of (each names the command that makes it): the 500-epoch protocol's summary
 (`fidelity.py --report`) and the sweeps' verdicts (`sweep_verdict.py --out`). Every cell is
-MixNeRF - baseline over the seeds both methods finished, mean ± standard error, "ahead" or
-"behind" only beyond two standard errors; the last column counts the runs that collapsed (test
-PSNR more than 2 dB below their method's median on the scene). A row whose result file is
+MixNeRF - baseline over the seeds both methods finished, mean ± the half-width of its Student-t
+95% interval (n - 1 degrees of freedom), "ahead" or "behind" only when the interval excludes
+zero; the last column counts the runs that failed (test PSNR more than 3 dB below the median of
+the baseline's runs on the scene). A row whose result file is
 missing is listed as not made, so the table never drops a row silently.
 """
 
@@ -20,7 +21,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fidelity import VERDICT_METRICS, verdict_cell  # noqa: E402
+from fidelity import VERDICT_METRICS, failed, paired_from_diffs, verdict_cell  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -131,8 +132,14 @@ ROWS = (
 class Found:
     cells: dict[str, Any]  # metric -> paired verdict on the test views (None: not scored)
     seeds: list[int]  # the seeds both methods finished (the pairs)
-    collapsed: tuple[list[int], list[int]]  # MixNeRF's collapsed seeds, the baseline's
+    failed: tuple[list[int], list[int]]  # MixNeRF's failed seeds, the baseline's
     runs: tuple[int, int]  # how many runs each method finished
+
+
+def _interval(found: dict[str, Any] | None, higher: bool) -> dict[str, Any] | None:
+    """A stored paired verdict re-derived from its per-seed differences, so that every row
+    uses the same interval and rule whenever its file was written."""
+    return None if found is None else paired_from_diffs(found["seeds"], found["diffs"], higher)
 
 
 def row_verdicts(record: dict[str, Any], key: str, source: str = "") -> Found | None:
@@ -144,8 +151,10 @@ def row_verdicts(record: dict[str, Any], key: str, source: str = "") -> Found | 
         if found is None:
             return None
         runs = len(found["seeds"])  # the protocol trains both methods on every seed
-        cells = {m: found.get(m) for _, m, _, _ in VERDICT_METRICS}
-        fell = (found["collapsed"]["mixnerf"], found["collapsed"]["mipnerf"])
+        cells = {m: _interval(found.get(m), higher) for _, m, higher, _ in VERDICT_METRICS}
+        if "failed" not in found:
+            raise SystemExit(f"{source}: written before failed runs were counted; re-make it (fidelity.py --report)")
+        fell = (found["failed"]["mixnerf"], found["failed"]["mipnerf"])
         return Found(cells, found["seeds"], fell, (runs, runs))
     if "scenes" not in record:
         raise SystemExit(f"{source}: neither a fidelity.py summary nor a sweep_verdict.py record")
@@ -155,8 +164,10 @@ def row_verdicts(record: dict[str, Any], key: str, source: str = "") -> Found | 
     found = record["scenes"].get(key)
     if found is None:
         return None
-    cells = {m: found["test"][m]["verdict"] for _, m, _, _ in VERDICT_METRICS}
-    fell = (found["collapsed"]["mixnerf"], found["collapsed"]["baseline"])
+    cells = {m: _interval(found["test"][m]["verdict"], higher) for _, m, higher, _ in VERDICT_METRICS}
+    psnr = {name: {int(s): v for s, v in found["test"]["psnr"][name].items()} for name in ("mixnerf", "baseline")}
+    missing = {name: [s for s in found["runs"][name] if s not in psnr[name]] for name in psnr}
+    fell = tuple(sorted(failed(psnr[name], psnr["baseline"]) + missing[name]) for name in ("mixnerf", "baseline"))
     runs = (len(found["runs"]["mixnerf"]), len(found["runs"]["baseline"]))
     return Found(cells, found["seeds"], fell, runs)
 
@@ -166,7 +177,7 @@ def markdown(results: Path = RESULTS) -> str:
     lines = [
         "| scene | images | training | settings chosen on | seeds | "
         + metrics
-        + " | collapsed (MixNeRF / baseline) |",
+        + " | failed (MixNeRF / baseline) |",
         "|---|---|---|---|---|" + "---|" * len(VERDICT_METRICS) + "---|",
     ]
     digits = {m: d for _, m, _, d in VERDICT_METRICS}
@@ -182,7 +193,7 @@ def markdown(results: Path = RESULTS) -> str:
             lines.append(head + f"not made (no {row.key} in `results/{row.source}`) | {blanks} | |")
             continue
         body = " | ".join(verdict_cell(found.cells[m], digits[m]) for _, m, _, _ in VERDICT_METRICS)
-        fell = " / ".join(f"{len(c)} of {n}" for c, n in zip(found.collapsed, found.runs, strict=True))
+        fell = " / ".join(f"{len(c)} of {n}" for c, n in zip(found.failed, found.runs, strict=True))
         lines.append(head + f"{len(found.seeds)} | {body} | {fell} |")
     return "\n".join(lines) + "\n"
 

@@ -69,10 +69,21 @@ def test_best_point_is_chosen_on_validation_views():
 
 
 def test_paired_verdict_against_a_hand_computation():
-    # Differences +0.5, +0.7, +0.3: mean 0.5, sample std 0.2, standard error 0.2 / sqrt(3).
+    # Differences +0.5, +0.7, +0.3: mean 0.5, sample std 0.2, standard error 0.2 / sqrt(3);
+    # the 95% Student-t quantile with 2 degrees of freedom is 4.303 (printed tables), so the
+    # half-width is 0.497 and the interval [0.003, 0.997] excludes zero.
     found = fidelity.paired_verdict({0: 20.5, 1: 20.7, 2: 20.3}, {0: 20.0, 1: 20.0, 2: 20.0}, True)
     assert found["mean"] == pytest.approx(0.5) and found["stderr"] == pytest.approx(0.2 / np.sqrt(3))
-    assert found["verdict"] == "ahead"  # 0.5 > 2 * 0.1155
+    assert found["half_width_95"] == pytest.approx(4.303 * 0.2 / np.sqrt(3), abs=1e-3)
+    assert found["verdict"] == "ahead"
+    # +0.5, +0.9, +0.1 (std 0.4): beyond two standard errors (0.46) but inside the t interval
+    # (half-width 0.99): level now, where the former rule said ahead.
+    wider = fidelity.paired_verdict({0: 0.5, 1: 0.9, 2: 0.1}, {0: 0.0, 1: 0.0, 2: 0.0}, True)
+    assert wider["mean"] > 2 * wider["stderr"] and wider["verdict"] == "level"
+    # 5 seeds: the quantile with 4 degrees of freedom is 2.776.
+    five = fidelity.paired_verdict(dict(enumerate([1.0, 2.0, 3.0, 4.0, 5.0])), dict.fromkeys(range(5), 0.0), True)
+    assert five["half_width_95"] == pytest.approx(2.776 * np.sqrt(2.5 / 5), abs=1e-3)
+    assert fidelity.verdict_cell(five) == "+3.00 ± 1.96: ahead"
     # The same differences on a lower-is-better metric are behind.
     assert (
         fidelity.paired_verdict({0: 0.5, 1: 0.7, 2: 0.3}, {0: 0.0, 1: 0.0, 2: 0.0}, False)["verdict"]
@@ -88,9 +99,9 @@ def test_paired_verdict_against_a_hand_computation():
     assert fidelity.paired_verdict({0: 1.0}, {1: 0.0}, True) is None
 
 
-def test_verdict_table_counts_collapsed_runs():
+def test_verdict_table_counts_failed_runs():
     runs = [
-        # The baseline's seed 1 falls into floaters: 15.2 against a median of 19.0.
+        # The baseline's seed 1 falls into floaters: 15.2, more than 3 dB below its median of 18.9.
         _run("builtin", "mipnerf", 0, [19.0], [25.0], depth=0.10),
         _run("builtin", "mipnerf", 1, [15.2], [25.0], depth=0.24),
         _run("builtin", "mipnerf", 2, [18.9], [25.0], depth=0.10),
@@ -100,14 +111,19 @@ def test_verdict_table_counts_collapsed_runs():
     ]
     lines, verdicts = fidelity.verdict_table(runs)
     row = verdicts["builtin"]
-    assert row["collapsed"] == {"mixnerf": [], "mipnerf": [1]}
+    assert row["failed"] == {"mixnerf": [], "mipnerf": [1]}
     assert row["psnr"]["diffs"] == pytest.approx([1.1, 3.9, -0.1])
-    # Mean 1.633, standard error 1.19: level despite the collapse.
+    # Mean 1.633, standard error 1.19: level despite the failure.
     assert row["psnr"]["verdict"] == "level"
     assert row["depth_mae"]["diffs"] == pytest.approx([-0.03, -0.15, -0.01])
     assert "0 of 3 / 1 of 3" in lines[-1]
-    assert fidelity.collapsed({0: 19.0, 1: 16.8, 2: 18.9}) == [1]  # median 18.9
-    assert fidelity.collapsed({0: 19.0, 1: 17.1, 2: 18.9}) == []
+    # Against the baseline's median (18.9 here): the line is 15.9, whatever the method's own median.
+    baseline = {0: 19.0, 1: 15.2, 2: 18.9}
+    assert fidelity.failed({0: 19.0, 1: 15.8, 2: 18.9}, baseline) == [1]
+    assert fidelity.failed({0: 19.0, 1: 16.0, 2: 18.9}, baseline) == []
+    # Failures that are the majority of a method's runs are counted (the former rule, 2 dB below
+    # the method's own median, counted none of these).
+    assert fidelity.failed({0: 10.7, 1: 11.0, 2: 19.5}, baseline) == [0, 1]
 
 
 def test_a_remedy_is_chosen_on_validation_views_of_every_scene():
@@ -131,7 +147,7 @@ def test_a_remedy_is_chosen_on_validation_views_of_every_scene():
     assert fern["val_vs_mixnerf"]["verdict"] == "ahead"
     assert fern["test_vs_mixnerf"]["verdict"] == "behind"
     assert fern["test_vs_baseline"]["diffs"] == pytest.approx([0.0, 0.0, 0.0])
-    assert "| mixnerf-no-ramp | fern | 3 | +1.00 ± 0.06: ahead | -1.00 ± 0.06: behind |" in table
+    assert "| mixnerf-no-ramp | fern | 3 | +1.00 ± 0.25: ahead | -1.00 ± 0.25: behind |" in table
     # Missing on one scene, or level on one: not adopted.
     without_lego = [r for r in runs if not (r["scene"] == "lego" and r["method"] == "mixnerf-no-ramp")]
     adopted = fidelity.summarise(without_lego)[1]["ablations"]["mixnerf-no-ramp"]

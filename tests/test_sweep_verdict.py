@@ -25,7 +25,8 @@ def _sweep(root: Path, psnr: dict[int, float | None], offset: float = 0.0) -> Pa
 
 
 def test_paired_verdicts_per_split_collapses_and_unfinished_runs(tmp_path, capsys):
-    # Differences +1.0, +1.2, +0.8 on test: mean 1.0, standard error 0.2/sqrt(3) = 0.115: ahead.
+    # Differences +1.0, +1.2, +0.8 on test: mean 1.0, standard error 0.2/sqrt(3) = 0.115, 95%
+    # half-width 4.303 x 0.115 = 0.50: ahead.
     mix = _sweep(tmp_path / "mix", {0: 20.0, 1: 20.2, 2: 19.8, 3: None}, offset=-1.0)
     base = _sweep(tmp_path / "base", {0: 19.0, 1: 19.0, 2: 19.0})
     table = sweep_verdict.verdicts(sweep_verdict.read_sweep(mix)[0], sweep_verdict.read_sweep(base)[0])
@@ -37,13 +38,13 @@ def test_paired_verdicts_per_split_collapses_and_unfinished_runs(tmp_path, capsy
     # LPIPS falls as PSNR rises here: lower is better, so MixNeRF is ahead there too.
     assert table["fern"]["test"]["lpips"]["verdict"]["verdict"] == "ahead"
     assert table["fern"]["test"]["depth_mae"]["verdict"] is None  # no depth: n/a
-    assert table["fern"]["collapsed"] == {"mixnerf": [], "baseline": []}
+    assert table["fern"]["failed"] == {"mixnerf": [], "baseline": []}
 
     out = tmp_path / "out" / "verdict"
     assert sweep_verdict.main([str(mix), str(base), "--title", "t", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "MixNeRF: not finished, left out: fern/seed_3" in printed
-    assert "| fern | test | 3 | +1.00 ± 0.12: ahead |" in printed
+    assert "| fern | test | 3 | +1.00 ± 0.50: ahead |" in printed
     record = json.loads(out.with_suffix(".json").read_text())
     assert record["unfinished"]["mixnerf"] == ["fern/seed_3"]
     assert record["title"] == "t"
@@ -55,11 +56,11 @@ def test_paired_verdicts_per_split_collapses_and_unfinished_runs(tmp_path, capsy
     assert json.loads(out.with_suffix(".json").read_text())["title"] == "MixNeRF against its baseline"
 
 
-def test_a_collapsed_run_and_too_few_seeds(tmp_path):
+def test_a_failed_run_and_too_few_seeds(tmp_path):
     mix = _sweep(tmp_path / "mix", {0: 20.0, 1: 20.0, 2: 15.0})
     base = _sweep(tmp_path / "base", {0: 19.0, 1: 19.0})
     table = sweep_verdict.verdicts(sweep_verdict.read_sweep(mix)[0], sweep_verdict.read_sweep(base)[0])
-    assert table["fern"]["collapsed"]["mixnerf"] == [2]  # 5 dB below its median of 20
+    assert table["fern"]["failed"]["mixnerf"] == [2]  # 4 dB below the baseline's median of 19
     assert table["fern"]["test"]["psnr"]["verdict"]["verdict"] == "2 seeds: no verdict"
     with pytest.raises(SystemExit, match="no such sweep folder"):
         sweep_verdict.read_sweep(tmp_path / "missing")
@@ -67,7 +68,7 @@ def test_a_collapsed_run_and_too_few_seeds(tmp_path):
 
 def test_null_validation_diverged_runs_and_what_the_pairing_leaves_out(tmp_path, capsys):
     """A scene without validation views writes `"val": null`, a diverged run null metrics:
-    neither stops the table; the diverged run counts as collapsed; unpaired runs and pairs of
+    neither stops the table; the diverged run counts as failed; unpaired runs and pairs of
     different lengths are said."""
     mix = _sweep(tmp_path / "mix", {0: 20.0, 1: 20.2, 2: 19.8, 4: 20.0})
     base = _sweep(tmp_path / "base", {0: 19.0, 1: 19.0, 2: 19.0})
@@ -92,6 +93,6 @@ def test_null_validation_diverged_runs_and_what_the_pairing_leaves_out(tmp_path,
     assert "fern/seed_4: finished in one sweep only" in printed
     assert "fern/seed_1: paired although trained 900 and 1000 steps" in printed
     table = sweep_verdict.verdicts(sweep_verdict.read_sweep(mix)[0], sweep_verdict.read_sweep(base)[0])
-    assert table["fern"]["collapsed"]["mixnerf"] == [2]
+    assert table["fern"]["failed"]["mixnerf"] == [2]
     assert table["fern"]["val"]["psnr"]["verdict"] is None
     assert table["fern"]["test"]["psnr"]["verdict"]["seeds"] == [0, 1]

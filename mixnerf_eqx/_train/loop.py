@@ -46,6 +46,7 @@ from .run_folder import (
     render_summary,
     write_view_renders,
 )
+from .failure import FailedRunWarning, blank_image, failure, recent_train_psnr
 from .sharding import DataParallel, data_parallel_mesh
 from .state import (
     StepMetrics,
@@ -130,6 +131,10 @@ class _RunLog:
         if self.tensorboard is not None:
             self.tensorboard.evaluation(done, means, images or {})
         self.evaluated.add(done)
+
+    def warning(self, done: int, message: str) -> None:
+        self.progress.write(f"step {done}: warning: {message}")
+        self._write({"step": done, "warning": message})
 
     def _write(self, entry: dict[str, Any]) -> None:
         # Flushed at once, so that `tail -f` follows the run and a crash loses no entry.
@@ -267,6 +272,21 @@ def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) 
     return chosen, state
 
 
+def _evaluation_ids(config: Config, dataset: Dataset) -> list[int]:
+    """The validation views of the periodic evaluation: `train.num_eval_views`, evenly spaced."""
+    assert dataset.val is not None
+    return evenly_spaced(dataset.val.num_views, min(config.train.num_eval_views, dataset.val.num_views))
+
+
+def _warn_if_failed(log: "_RunLog", step: int, val_psnr: float | None, blank: Any) -> str | None:
+    """Warns (and logs) when the figures say the run has failed (`failure.failure`)."""
+    message = failure(step, val_psnr, recent_train_psnr(log.history), blank)
+    if message is not None:
+        log.warning(step, message)
+        warnings.warn(message, FailedRunWarning, stacklevel=2)
+    return message
+
+
 def _periodic_evaluation(
     config: Config, dataset: Dataset, state: TrainState, *, with_images: bool = False
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -274,7 +294,7 @@ def _periodic_evaluation(
     test views are scored once, at the end. With `with_images`, also the first view's colour,
     depth, error and (with mixture heads) predictive colour spread, as RGB images."""
     assert dataset.val is not None
-    ids = evenly_spaced(dataset.val.num_views, min(config.train.num_eval_views, dataset.val.num_views))
+    ids = _evaluation_ids(config, dataset)
     skipping = None if state.grid is None else make_skipping(config.occupancy, state.grid)
     chunk = config.train.render_chunk if skipping is None else config.occupancy.chunk
     images: dict[str, np.ndarray] = {}
@@ -401,6 +421,8 @@ def _fit_holding(
     images = "tensorboard" in train.log_to
     log = _RunLog(run_dir, start, train.max_steps, progress, tensorboard=images)
     guard = _Guard(train.max_nonfinite_steps, run_dir)
+    blank = blank_image(dataset, _evaluation_ids(config, dataset)) if eval_every else None
+    failed_at: str | None = None
     try:
         # Ctrl-C stops the loop only between steps or between chunks of a render, so the
         # state saved holds exactly the steps it is named after.
@@ -425,7 +447,10 @@ def _fit_holding(
                 if state.grid is not None and _due(done, config.occupancy.update_every):
                     state = update_grid(state, config.occupancy)
                 if evaluate_now:
-                    log.evaluation(done, *_periodic_evaluation(config, dataset, state, with_images=images))
+                    means, shown = _periodic_evaluation(config, dataset, state, with_images=images)
+                    log.evaluation(done, means, shown)
+                    if failed_at is None:
+                        failed_at = _warn_if_failed(log, done, means.get("psnr"), blank)
                 # No checkpoint inside a run of skipped steps: the last good one must stay the
                 # newest, so that a diverging run can be resumed from before the trouble began.
                 if checkpoint_now and not guard.streak:
@@ -448,6 +473,7 @@ def _fit_holding(
     if done >= train.max_steps:
         with _rendering_after_training(done, run_dir):
             metrics = _final_report(config, dataset, state, run_dir, write_renders, metrics, progress)
+        metrics = _record_failure(metrics, dataset, log, done, failed_at, run_dir)
     return TrainResult(state=state, metrics=metrics, run_dir=run_dir, history=log.history)
 
 
@@ -530,6 +556,24 @@ def _final_report(
         staging.mkdir(exist_ok=True)
         shutil.rmtree(renders, ignore_errors=True)
         staging.replace(renders)
+    _write_replacing(run_dir / "metrics.json", strict_json.dumps(metrics, indent=2))
+    return metrics
+
+
+def _record_failure(
+    metrics: dict[str, Any], dataset: Dataset, log: _RunLog, step: int, during: str | None, run_dir: Path
+) -> dict[str, Any]:
+    """Adds `failure` to `metrics.json`: the check on every validation view at the end (or the
+    warning given during training), `None` when neither found one."""
+    found = during
+    if dataset.val is not None and metrics.get("val"):
+        blank = blank_image(dataset, list(range(dataset.val.num_views)))
+        at_end = failure(step, metrics["val"].get("psnr"), recent_train_psnr(log.history), blank)
+        if at_end is not None:
+            if during is None:
+                warnings.warn(at_end, FailedRunWarning, stacklevel=2)
+            found = at_end
+    metrics = {**metrics, "failure": found}
     _write_replacing(run_dir / "metrics.json", strict_json.dumps(metrics, indent=2))
     return metrics
 

@@ -28,7 +28,8 @@ Numbers from the two protocols are not comparable.
 
 Validation views come from `transforms_val.json` when its images are there, otherwise from
 the frames of `transforms_train.json` that the protocol does not train on; evenly spaced
-either way. Neither set meets the test views.
+either way, after leaving out the cameras that lie near a test camera (`_splits.near_test`).
+Neither set meets the test views.
 """
 
 import math
@@ -49,7 +50,7 @@ from ._files import (
     to_float,
 )
 from ._poses import parse_transform_matrix
-from ._splits import subsample_test_ids, validation_ids
+from ._splits import describe_validation, near_test, subsample_test_ids, validation_ids
 
 __all__ = ["SCENES", "load_blender", "split_ids"]
 
@@ -182,23 +183,52 @@ def _load_views(scene_dir: Path, ids: list[int], meta: Any, path: Path, downscal
     )
 
 
+def _centres(meta: Any, path: Path) -> np.ndarray:
+    """Every frame's camera centre."""
+    return np.stack(
+        [
+            parse_transform_matrix(frame["transform_matrix"], f"{path}: the transform_matrix of frame {i}")[:3, 3]
+            for i, frame in enumerate(_frames(meta, path))
+        ]
+    )
+
+
 def _validation(
-    scene_dir: Path, train_meta: Any, train_path: Path, train_ids: list[int], max_views: int, downscale: int
+    scene_dir: Path, train_meta: Any, train_path: Path, train_ids: list[int], test: Views, max_views: int, downscale: int
 ) -> tuple[Views | None, str]:
     """The validation views and where they come from (see the module docstring)."""
+    train_centres = _centres(train_meta, train_path)
+    test_centres = np.asarray(test.camtoworlds, np.float64)[:, :3, 3]
     val_path = scene_dir / "transforms_val.json"
     if val_path.is_file():
         val_meta = read_json(val_path, "Blender camera file", _ADVICE)
         frames = _frames(val_meta, val_path)
-        ids = subsample_test_ids(list(range(len(frames))), max_views)
+        near = near_test(_centres(val_meta, val_path), train_centres[train_ids], test_centres)
+        kept = [i for i in range(len(frames)) if not near[i]]
+        ids = subsample_test_ids(kept, max_views)
         paths = [_image_path(scene_dir, frames[i]["file_path"]) for i in ids]
-        if all(p.is_file() or _downsampled_path(p).is_file() for p in paths):
-            return _load_views(scene_dir, ids, val_meta, val_path, downscale), "transforms_val.json"
-    ids = validation_ids(list(range(len(_frames(train_meta, train_path)))), train_ids, max_views)
+        if ids and all(p.is_file() or _downsampled_path(p).is_file() for p in paths):
+            source = describe_validation("transforms_val.json", "", ids, len(frames) - len(kept))
+            return _load_views(scene_dir, ids, val_meta, val_path, downscale), source
+    # The unused training frames; the test cameras join the frames' own, for `near_test`.
+    count = len(train_centres)
+    ids, left_out = validation_ids(
+        list(range(count)),
+        train_ids,
+        max_views,
+        centres=np.concatenate([train_centres, test_centres]),
+        train_ids=train_ids,
+        test_ids=list(range(count, count + len(test_centres))),
+    )
+    source = describe_validation(
+        "training frames not trained on (transforms_val.json's images are missing)",
+        "no val images and no unused training frame",
+        ids,
+        left_out,
+    )
     if not ids:
-        return None, "no val images and no unused training frame"
-    views = _load_views(scene_dir, ids, train_meta, train_path, downscale)
-    return views, "training frames not trained on (transforms_val.json's images are missing)"
+        return None, source
+    return _load_views(scene_dir, ids, train_meta, train_path, downscale), source
 
 
 def load_blender(
@@ -242,7 +272,7 @@ def load_blender(
     test_ids = subsample_test_ids(test_ids, max_test_views)
     train = _load_views(scene_dir, train_ids, train_meta, train_path, downscale)
     test = _load_views(scene_dir, test_ids, test_meta, test_path, downscale)
-    val, val_source = _validation(scene_dir, train_meta, train_path, train_ids, max_val_views, downscale)
+    val, val_source = _validation(scene_dir, train_meta, train_path, train_ids, test, max_val_views, downscale)
     return Dataset(
         name=scene_dir.name,
         train=train,

@@ -43,7 +43,7 @@ from ._downscale import check_factor, downscale_image, downscale_intrinsics, dow
 from ._errors import DatasetError
 from ._files import area_downsample, check_same_size, list_images, read_image, read_images, require_file
 from ._poses import decompose_projection, recenter_poses
-from ._splits import subsample_test_ids, validation_ids
+from ._splits import describe_validation, subsample_test_ids, validation_ids
 
 __all__ = ["SCANS", "dtu_cameras", "load_dtu", "protocol_ids"]
 
@@ -282,8 +282,15 @@ def load_dtu(
     camera_path = scan_dir / "cameras.npz"
     intrinsics, camtoworlds = dtu_cameras(_read_cameras(camera_path, len(files)), camera_path)
     train_ids, test_ids = protocol_ids(num_train_views)
-    val_ids = validation_ids(list(range(len(files))), train_ids + test_ids, max_val_views)
     test_ids = subsample_test_ids(test_ids, max_test_views)
+    val_ids, left_out = validation_ids(
+        list(range(len(files))),
+        train_ids + test_ids,
+        max_val_views,
+        centres=np.asarray(camtoworlds)[:, :3, 3],
+        train_ids=train_ids,
+        test_ids=test_ids,
+    )
 
     def views(ids: list[int], masks: list[Path] | None) -> Views:
         return _load_views(
@@ -309,5 +316,7 @@ def load_dtu(
         white_background=False,
         frustum="cone",
         val=views(val_ids, None) if val_ids else None,
-        val_source="views outside the protocol's training and test ids" if val_ids else "no view left over",
+        val_source=describe_validation(
+            "views outside the protocol's training and test ids", "no view left over", val_ids, left_out
+        ),
     )

@@ -27,7 +27,7 @@ from ._downscale import check_factor, downscale_centred_camera, downscale_image
 from ._errors import DatasetError
 from ._files import check_same_size, list_images, read_images, read_npy, require_dir
 from ._poses import recenter_poses
-from ._splits import holdout_split, subsample_test_ids, validation_ids
+from ._splits import describe_validation, holdout_split, subsample_test_ids, validation_ids
 
 __all__ = ["SCENES", "llff_poses", "load_llff"]
 
@@ -122,8 +122,15 @@ def load_llff(
             "each image needs exactly one row. Restore the missing images (or poses) so the counts match."
         )
     train_ids, test_ids = holdout_split(len(files), HOLDOUT_EVERY, num_train_views, image_dir)
-    val_ids = validation_ids(list(range(len(files))), train_ids + test_ids, max_val_views)
     test_ids = subsample_test_ids(test_ids, max_test_views)
+    val_ids, left_out = validation_ids(
+        list(range(len(files))),
+        train_ids + test_ids,
+        max_val_views,
+        centres=camtoworlds[:, :3, 3],
+        train_ids=train_ids,
+        test_ids=test_ids,
+    )
 
     def views(ids: list[int]) -> Views:
         paths = [files[i] for i in ids]
@@ -159,7 +166,10 @@ def load_llff(
         white_background=False,
         frustum="cylinder",
         val=views(val_ids) if val_ids else None,
-        val_source="images neither trained on nor held out for testing"
-        if val_ids
-        else "every image is a training or test view",
+        val_source=describe_validation(
+            "images neither trained on nor held out for testing",
+            "every image is a training or test view",
+            val_ids,
+            left_out,
+        ),
     )

@@ -20,7 +20,7 @@ from .._custom_types import DepthStack, ImageStack
 from .._nn.rays import pixel_directions
 from ._dataset import Dataset, Views
 
-__all__ = ["make_builtin_scene"]
+__all__ = ["make_builtin_scene", "split_angles"]
 
 NEAR = 2.0
 FAR = 6.0
@@ -45,11 +45,13 @@ DIFFUSE = 0.7
 SPECULAR = 0.35
 SHININESS = 40.0
 
-# Elevations (degrees) cycled through by the three splits. The sets are disjoint, so no
-# two splits can share a pose whatever the numbers of views.
+# Elevations (degrees) cycled through by the training and test cameras. The sets are
+# disjoint, so the two splits cannot share a pose whatever the numbers of views.
 _TRAIN_ELEVATIONS = (28.0, 40.0)
 _TEST_ELEVATIONS = (20.0, 34.0, 46.0)
-_VAL_ELEVATIONS = (24.0, 37.0, 43.0)
+# Validation cameras are picked from a 1-degree grid over this band of elevations (that of the
+# test cameras) and every azimuth.
+_VAL_ELEVATION_BAND = (20.0, 46.0)
 # An azimuth offset that keeps the cameras off the scene's axes, where the box faces would
 # be seen exactly edge-on.
 _AZIMUTH_OFFSET = np.deg2rad(17.0)
@@ -376,11 +378,56 @@ def _test_poses(num_views: int) -> np.ndarray:
     return _orbit_poses(azimuths, elevations)
 
 
-def _val_poses(num_views: int) -> np.ndarray:
-    # A quarter step off the training azimuths: between training and test cameras.
-    azimuths = _AZIMUTH_OFFSET + 2 * np.pi * (np.arange(num_views) + 0.25) / num_views
-    elevations = np.deg2rad([_VAL_ELEVATIONS[i % 3] for i in range(num_views)])
-    return _orbit_poses(azimuths, elevations)
+def _directions(poses: np.ndarray) -> np.ndarray:
+    """Unit vectors from the origin to the cameras' centres."""
+    centres = poses[:, :3, 3]
+    return centres / np.linalg.norm(centres, axis=-1, keepdims=True)
+
+
+def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise angles, in degrees, between the unit vectors of `a` and of `b`."""
+    return np.degrees(np.arccos(np.clip(a @ b.T, -1.0, 1.0)))
+
+
+def _val_poses(train_poses: np.ndarray, test_poses: np.ndarray, num_views: int) -> np.ndarray:
+    # Settings are chosen on these views, so they must not be near-copies of the test views,
+    # and should be as hard as the test views are. Candidates: every whole degree of azimuth
+    # and of elevation in the test cameras' band, kept when their angle to the nearest
+    # training camera lies within the test cameras' range of that angle. Then greedily, the
+    # candidate farthest from every test camera and every validation camera already chosen
+    # (first in grid order on ties).
+    azimuths, elevations = np.meshgrid(
+        np.arange(360.0), np.arange(_VAL_ELEVATION_BAND[0], _VAL_ELEVATION_BAND[1] + 1.0), indexing="ij"
+    )
+    azimuths, elevations = np.deg2rad(azimuths.ravel()), np.deg2rad(elevations.ravel())
+    candidates = np.stack(
+        [np.cos(elevations) * np.cos(azimuths), np.cos(elevations) * np.sin(azimuths), np.sin(elevations)],
+        axis=-1,
+    )
+    train, test = _directions(train_poses), _directions(test_poses)
+    test_to_train = _angles_deg(test, train).min(axis=1)
+    to_train = _angles_deg(candidates, train).min(axis=1)
+    allowed = (to_train >= test_to_train.min()) & (to_train <= test_to_train.max())
+    nearest = np.where(allowed, _angles_deg(candidates, test).min(axis=1), -np.inf)
+    chosen: list[int] = []
+    for _ in range(num_views):
+        pick = int(np.argmax(nearest))
+        chosen.append(pick)
+        nearest = np.minimum(nearest, _angles_deg(candidates, candidates[pick : pick + 1])[:, 0])
+    return _orbit_poses(azimuths[chosen], elevations[chosen])
+
+
+def split_angles(dataset: Dataset) -> dict[str, np.ndarray]:
+    """Each validation camera's angle (degrees, seen from the origin) to the nearest test camera
+    and to the nearest training camera, and each test camera's to the nearest training camera."""
+    if dataset.val is None:
+        raise ValueError(f"{dataset.name} has no validation views")
+    train, test, val = (_directions(np.asarray(v.camtoworlds, np.float64)) for v in (dataset.train, dataset.test, dataset.val))
+    return {
+        "val_to_test": _angles_deg(val, test).min(axis=1),
+        "val_to_train": _angles_deg(val, train).min(axis=1),
+        "test_to_train": _angles_deg(test, train).min(axis=1),
+    }
 
 
 def _focal(resolution: int) -> float:
@@ -429,9 +476,12 @@ def make_builtin_scene(
     The scene is deterministic: every call with the same arguments returns bit-identical
     arrays. Training cameras are spread evenly in azimuth at elevations of 28 and 40
     degrees; test cameras lie halfway between, at elevations of 20, 34 and 46 degrees, so no
-    test pose equals a training pose; validation cameras lie a quarter step after the training
-    cameras, at elevations of 24, 37 and 43 degrees. All cameras are 4 units from the origin, look at a
-    point slightly above the ground and have a 40 degree field of view.
+    test pose equals a training pose. Validation cameras are placed as far as possible from the
+    test cameras (and from each other) while lying as far from the training cameras as the test
+    cameras do: at the default counts each is 27.7 to 28.9 degrees from the nearest test camera
+    and 20.0 to 21.1 degrees from the nearest training camera (test cameras: 17.4 to 27.8).
+    All cameras are 4 units from the origin, look at a point slightly above the ground and have
+    a 40 degree field of view. `split_angles` measures these angles.
 
     **Arguments:**
 
@@ -462,14 +512,18 @@ def make_builtin_scene(
             ids=tuple(range(first_id, first_id + len(poses))),
         )
 
+    train_poses, test_poses = _train_poses(num_train_views), _test_poses(num_test_views)
+    val = None
+    if num_val_views:
+        val = views(_val_poses(train_poses, test_poses, num_val_views), num_train_views + num_test_views)
     return Dataset(
         name="builtin",
-        train=views(_train_poses(num_train_views), 0),
-        test=views(_test_poses(num_test_views), num_train_views),
+        train=views(train_poses, 0),
+        test=views(test_poses, num_train_views),
         near=NEAR,
         far=FAR,
         white_background=True,
         frustum="cone",
-        val=views(_val_poses(num_val_views), num_train_views + num_test_views) if num_val_views else None,
-        val_source="extra cameras" if num_val_views else "none asked for (data.num_val_views = 0)",
+        val=val,
+        val_source="extra cameras away from the test cameras" if num_val_views else "none asked for (data.num_val_views = 0)",
     )

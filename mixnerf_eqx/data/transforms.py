@@ -42,7 +42,7 @@ from ._files import (
     read_json,
 )
 from ._poses import parse_transform_matrix
-from ._splits import holdout_split, subsample_test_ids, validation_ids
+from ._splits import describe_validation, holdout_split, subsample_test_ids, validation_ids
 
 __all__ = ["default_bounds", "load_transforms"]
 
@@ -217,8 +217,15 @@ def load_transforms(
     frames = _frames(meta, path)
     poses = _poses(frames, path)
     train_ids, test_ids = holdout_split(len(frames), HOLDOUT_EVERY, num_train_views, path)
-    val_ids = validation_ids(list(range(len(frames))), train_ids + test_ids, max_val_views)
     test_ids = subsample_test_ids(test_ids, max_test_views)
+    val_ids, left_out = validation_ids(
+        list(range(len(frames))),
+        train_ids + test_ids,
+        max_val_views,
+        centres=poses[:, :3, 3],
+        train_ids=train_ids,
+        test_ids=test_ids,
+    )
     near, far = default_bounds(poses) if bounds is None else bounds
     if not 0 <= near < far:
         raise DatasetError(
@@ -242,7 +249,10 @@ def load_transforms(
         white_background=has_alpha,
         frustum="cone",
         val=views(val_ids) if val_ids else None,
-        val_source="frames neither trained on nor held out for testing"
-        if val_ids
-        else "every frame is a training or test view",
+        val_source=describe_validation(
+            "frames neither trained on nor held out for testing",
+            "every frame is a training or test view",
+            val_ids,
+            left_out,
+        ),
     )
