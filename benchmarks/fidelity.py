@@ -133,6 +133,8 @@ ABLATIONS = {
     # The light past the last sample as a colour-mixture component (white-background scenes;
     # LLFF has no background, so its runs are MixNeRF's).
     "background": ("loss.background_component=true",),
+    # The colour NLLs shape the weights and scales only: no gradient into the samples' colours.
+    "no-paint": ("loss.nll_trains_colour=false",),
     # No gradient clipping (element-wise or global-norm).
     "no-clip": ("optim.grad_max_value=0.0", "optim.grad_max_norm=0.0"),
 }

@@ -111,6 +111,9 @@ class LossConfig:
     lambda_depth: float = 1e-3  # lambda_D (Blender 4-view)
     lambda_regen: float = 1e-4  # lambda_hat_C (Blender 4-view)
     nll_levels: Literal["coarse", "both"] = "coarse"  # levels the NLLs apply to (released: coarse)
+    # false: the colour NLLs do not train the samples' colours (their gradient stops at the
+    # components' locations), only the weights and scales; true: the paper's NLLs.
+    nll_trains_colour: bool = True
     weight_eps: float = 1e-10  # pi = w / (sum w + weight_eps)
     likelihood_floor: float = 1e-12  # NLL = -log(likelihood + floor); 0 for the exact NLL
     depth_scale: Literal["colour", "single"] = "colour"  # depth reuses the 3 colour scales

@@ -367,3 +367,33 @@ def test_a_registered_term_is_weighted_logged_and_range_checked(mixnerf_model, t
     entries = [json.loads(line) for line in (result.run_dir / "train_log.jsonl").read_text().splitlines()]
     steps = [entry for entry in entries if "loss" in entry]
     assert steps and all(0 < entry["dummy"] <= 1 for entry in steps)
+
+
+def test_the_colour_nlls_can_leave_the_sample_colours_untrained(mixnerf_model):
+    """`loss.nll_trains_colour = false` stops the colour NLLs' gradient at the components'
+    locations (the samples' colours): the same loss, no gradient into those colours, the same
+    gradient into the scales."""
+    rng = np.random.default_rng(3)
+    directions = as_f64(as_f32(rng.normal(size=(8, 3)) * np.array([0.3, 0.3, 1.0]) - [0, 0, 1]))
+    dirs_norm = np.linalg.norm(directions, axis=-1)
+    levels = {n: _random_level(rng, 8, 6, dirs_norm, np.ones(3)) for n in ("coarse", "fine")}
+    target = jnp.asarray(as_f32(rng.uniform(0, 1, (8, 3))))
+    outputs = _as_outputs(levels)
+
+    def total(field_rgb, beta, trains):
+        loss = LossConfig(nll_trains_colour=trains)
+        weights = LossWeights.from_config(loss, "mixnerf")
+        coarse = outputs.coarse
+        field = dataclasses.replace(coarse.field, rgb=field_rgb, beta=beta)
+        changed = dataclasses.replace(outputs, coarse=dataclasses.replace(coarse, field=field))
+        lam = jnp.asarray(2.0, jnp.float32)
+        return loss_terms(changed, mixnerf_model, _rays(directions), target, lam, weights).total
+
+    rgb, beta = outputs.coarse.field.rgb, outputs.coarse.field.beta
+    assert float(total(rgb, beta, False)) == float(total(rgb, beta, True))
+    grad = jax.grad(total, argnums=(0, 1))
+    rgb_trained, beta_trained = grad(rgb, beta, True)
+    rgb_fixed, beta_fixed = grad(rgb, beta, False)
+    assert float(jnp.abs(rgb_trained).max()) > 1e-3  # the paper's NLLs pull the sample colours
+    assert float(jnp.abs(rgb_fixed).max()) == 0.0
+    np.testing.assert_array_equal(np.asarray(beta_fixed), np.asarray(beta_trained))

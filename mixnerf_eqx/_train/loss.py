@@ -100,11 +100,13 @@ class LossWeights:
       where its schedule is not zero throughout (its value comes per step).
     - `nll_levels`: the levels the NLLs apply to, `"coarse"` (the released code) or `"both"`.
     - `patch_size`: the side of the unseen-view patches.
+    - `nll_trains_colour`: whether the colour NLLs' gradient reaches the samples' colours.
     """
 
     weights: tuple[tuple[str, float], ...]
     nll_levels: str = "coarse"
     patch_size: int = 8
+    nll_trains_colour: bool = True
 
     @classmethod
     def from_config(cls, loss: LossConfig, method: str) -> "LossWeights":
@@ -123,7 +125,12 @@ class LossWeights:
             else:
                 value = float(getattr(loss, term.weight))
             weights.append((term.name, value))
-        return cls(tuple(weights), nll_levels=loss.nll_levels, patch_size=loss.smoothness_patch_size)
+        return cls(
+            tuple(weights),
+            nll_levels=loss.nll_levels,
+            patch_size=loss.smoothness_patch_size,
+            nll_trains_colour=loss.nll_trains_colour,
+        )
 
     def __getitem__(self, name: str) -> float:
         return dict(self.weights)[name]
@@ -260,6 +267,12 @@ def _log_transmittance(mixture, density, t_edges, step_scale):
     return jax.vmap(log_transmittance)(density, t_edges, step_scale)
 
 
+def _component_colours(inputs: LossInputs, rgb):
+    """The samples' colours as the colour NLLs' component locations: without a gradient when
+    `loss.nll_trains_colour` is false."""
+    return rgb if inputs.weights.nll_trains_colour else jax.lax.stop_gradient(rgb)
+
+
 def _nll_colour(inputs: LossInputs) -> Float[Array, ""]:
     """NLL_C (eq. 7): the colour's mixture NLL under the rendered weights."""
     direction_norm = jnp.linalg.norm(inputs.rays.directions, axis=-1)
@@ -267,7 +280,8 @@ def _nll_colour(inputs: LossInputs) -> Float[Array, ""]:
     def level_nll(level):
         mixture, outputs = _mixture_of(inputs, level)
         log_t = _log_transmittance(mixture, outputs.density, level.t_edges, direction_norm)
-        nll = jax.vmap(mixture.colour_nll)(level.weights, outputs.rgb, outputs.beta, inputs.target_rgb, log_t)
+        rgb = _component_colours(inputs, outputs.rgb)
+        nll = jax.vmap(mixture.colour_nll)(level.weights, rgb, outputs.beta, inputs.target_rgb, log_t)
         return jnp.mean(nll)
 
     return _summed(level_nll(level) for level in inputs.nll_levels)
@@ -293,7 +307,8 @@ def _nll_regen(inputs: LossInputs) -> Float[Array, ""]:
         mixture, outputs = _mixture_of(inputs, level)
         regen_weights = jax.vmap(blend_weights)(outputs.density, level.t_edges, outputs.ray_depth)
         log_t = _log_transmittance(mixture, outputs.density, level.t_edges, outputs.ray_depth)
-        nll = jax.vmap(mixture.colour_nll)(regen_weights, outputs.rgb, outputs.beta, inputs.target_rgb, log_t)
+        rgb = _component_colours(inputs, outputs.rgb)
+        nll = jax.vmap(mixture.colour_nll)(regen_weights, rgb, outputs.beta, inputs.target_rgb, log_t)
         return jnp.mean(nll)
 
     return _summed(level_nll(level) for level in inputs.nll_levels)
