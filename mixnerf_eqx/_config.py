@@ -192,6 +192,15 @@ class OccupancyConfig:
     )
     segments: int = 4  # rendering: pieces of each level between which finished rays are dropped
     chunk: int = 16384  # rendering with skipping: rays per chunk
+    # Training that skips (with `enabled`): once every cell has been evaluated, a step evaluates
+    # the field only at the samples in occupied cells (and, on the fine level, in front of the
+    # point where the coarse transmittance falls below `train_stop_transmittance`), gathered
+    # into a buffer per level whose size is the share of samples last found live, plus
+    # `train_headroom`, rounded up to eighths (a few sizes, each step compiled once).
+    train_skipping: bool = False
+    train_stop_transmittance: float = 1e-4  # 0: finished rays are evaluated in training
+    train_headroom: float = 0.1  # share of the samples added to the live share measured
+    train_budget_every: int = 10  # steps between measurements of the live share
 
 
 @dataclasses.dataclass(frozen=True)
@@ -320,6 +329,9 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
     ("occupancy.decay", *_within(0, 1)),
     ("occupancy.update_fraction", *_within(0, 1, low_open=True)),
     ("occupancy.stop_transmittance", *_within(0, 1, high_open=True)),
+    ("occupancy.train_stop_transmittance", *_within(0, 1, high_open=True)),
+    ("occupancy.train_headroom", *_within(0, 1)),
+    ("occupancy.train_budget_every", *_at_least(1)),
 )
 
 
@@ -396,6 +408,11 @@ def _consistency_problems(config: "Config") -> list[str]:
         problems.append(f"data.near ({data.near:g}) must be below data.far ({data.far:g})")
     if not config.train.run_dir.strip():
         problems.append("train.run_dir must name a folder (it is empty)")
+    if occupancy.train_skipping and not occupancy.enabled:
+        problems.append(
+            "occupancy.train_skipping needs occupancy.enabled = true (the grid that decides which samples "
+            "are empty)"
+        )
     if occupancy.choose_threshold and occupancy.density_threshold <= 0:
         problems.append(
             "occupancy.choose_threshold needs occupancy.density_threshold > 0 (the first threshold tried)"

@@ -17,8 +17,26 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._custom_types import PRNGKey
+from .._nn.budget import AbstractOccupancy
 from .._nn.field import AbstractField
 from .._nn.rays import RayBundle
+
+
+class OccupiedCells(AbstractOccupancy):
+    """A grid's occupied cells, fixed (the dilated mask computed once): the occupancy test a
+    training step's `SampleBudget` asks at both levels."""
+
+    mask: Bool[Array, "resolution resolution resolution"]
+    box_min: Float[Array, "3"]
+    cell_size: Float[Array, "3"]
+    outside_occupied: bool = eqx.field(static=True)
+
+    def occupied(self, points: Float[Array, "*batch 3"]) -> Bool[Array, "*batch"]:
+        resolution = self.mask.shape[0]
+        cells = jnp.floor((points - self.box_min) / self.cell_size).astype(jnp.int32)
+        inside = jnp.all((cells >= 0) & (cells < resolution), axis=-1)
+        cells = jnp.clip(cells, 0, resolution - 1)
+        return jnp.where(inside, self.mask[cells[..., 0], cells[..., 1], cells[..., 2]], self.outside_occupied)
 
 
 class OccupancyGrid(eqx.Module):
@@ -83,13 +101,16 @@ class OccupancyGrid(eqx.Module):
         mask: Bool[Array, "resolution resolution resolution"] | None = None,
     ) -> Bool[Array, "*batch"]:
         """Whether each point lies in an occupied cell (`mask`: a precomputed `self.mask()`)."""
+        return self.cells(mask).occupied(points)
+
+    def cells(self, mask: Bool[Array, "resolution resolution resolution"] | None = None) -> OccupiedCells:
+        """The occupied cells as they are now (`mask`: a precomputed `self.mask()`)."""
         mask = self.mask() if mask is None else mask
-        scaled = (points - self.box_min) / self.cell_size
-        cells = jnp.floor(scaled).astype(jnp.int32)
-        inside = jnp.all((cells >= 0) & (cells < self.resolution), axis=-1)
-        cells = jnp.clip(cells, 0, self.resolution - 1)
-        value = mask[cells[..., 0], cells[..., 1], cells[..., 2]]
-        return jnp.where(inside, value, self.outside_occupied)
+        return OccupiedCells(mask, self.box_min, self.cell_size, self.outside_occupied)
+
+    def fully_evaluated(self) -> Bool[Array, ""]:
+        """Whether every cell has been evaluated at least once (none still `inf`)."""
+        return jnp.all(jnp.isfinite(self.density))
 
     def occupied_fraction(self) -> Float[Array, ""]:
         """The share of the cells that `mask()` marks occupied."""

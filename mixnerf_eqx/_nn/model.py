@@ -15,6 +15,7 @@ from jaxtyping import Array, Float
 
 from .._config import Config, schedule_steps
 from .._custom_types import FourKeysPerRay, PRNGKey, RayKeys
+from .budget import SampleBudget, budget_capacity, evaluate_live, transmittance_before
 from .field import AbstractField, FieldOutputs, GridField, HashEncoding, MipNeRFField, TriPlaneEncoding
 from .field.grid import level_resolutions
 from .mixture import AbstractMixture, LaplaceMixture
@@ -34,6 +35,24 @@ def _vmap_sampler(sampler: AbstractSampler, *args, keys: RayKeys | None) -> RayS
     if keys is None:
         return jax.vmap(lambda *a: sampler(*a))(*args)
     return jax.vmap(lambda k, *a: sampler(*a, key=k))(keys, *args)
+
+
+class BudgetReport(eqx.Module):
+    """What a budgeted training render evaluated (`MixNeRF.render_within`).
+
+    **Fields:**
+
+    - `evaluations` (static): field evaluations made, both levels (the buffers' sizes).
+    - `dense` (static): the dense render's, both levels.
+    - `coarse_live`, `fine_live`: samples the budget found live on each level.
+    - `dropped`: live samples that did not fit their level's buffer.
+    """
+
+    evaluations: int = eqx.field(static=True)
+    dense: int = eqx.field(static=True)
+    coarse_live: Array
+    fine_live: Array
+    dropped: Array
 
 
 class MixNeRF(eqx.Module):
@@ -130,6 +149,74 @@ class MixNeRF(eqx.Module):
         fine_samples = self.sample_fine(rays, coarse, keys(2))
         fine = self.composite(self.query_field(fine_samples, rays, keys(3)), fine_samples, rays)
         return RenderOutputs(coarse=coarse, fine=fine)
+
+    def _query_live(
+        self,
+        samples: RaySamples,
+        rays: RayBundle,
+        keys: RayKeys | None,
+        live,
+        fraction: float,
+    ):
+        num_rays, num_samples = samples.means.shape[:2]
+        point_keys = None
+        if keys is not None:
+            point_keys = jax.vmap(lambda k: jax.random.split(k, num_samples))(keys)
+            point_keys = point_keys.reshape(num_rays * num_samples, *point_keys.shape[2:])
+        capacity = budget_capacity(fraction, num_rays, num_samples)
+        outputs, dropped = evaluate_live(
+            self.query_points,
+            samples.means,
+            samples.covs,
+            rays.viewdirs,
+            point_keys,
+            live,
+            capacity,
+            with_mixture_heads=self.field.has_mixture_heads,
+        )
+        return outputs, dropped, capacity
+
+    def render_within(
+        self, rays: RayBundle, budget: SampleBudget, *, key: PRNGKey | None = None
+    ) -> tuple[RenderOutputs, BudgetReport]:
+        """Renders a flat batch of rays as `__call__` does, evaluating the field only at the
+        live samples that fit the budget's buffers (`mixnerf_eqx._nn.budget`).
+
+        With every sample live and both fractions 1 the outputs equal `__call__`'s.
+        """
+        flat = rays.reshape(-1)
+        num_rays = flat.origins.shape[0]
+        ray_keys = None
+        if key is not None:
+            ray_keys = jax.vmap(lambda k: jax.random.split(k, 4))(jax.random.split(key, num_rays))
+
+        def keys(index: int):
+            return None if ray_keys is None else ray_keys[:, index]
+
+        coarse_samples = self.sample_coarse(flat, keys(0))
+        coarse_live = budget.live(coarse_samples.means)
+        coarse_field, coarse_dropped, coarse_capacity = self._query_live(
+            coarse_samples, flat, keys(1), coarse_live, budget.coarse_fraction
+        )
+        coarse = self.composite(coarse_field, coarse_samples, flat)
+        fine_samples = self.sample_fine(flat, coarse, keys(2))
+        fine_live = budget.live(fine_samples.means)
+        if budget.stop_transmittance > 0:
+            centres = 0.5 * (fine_samples.t_edges[:, 1:] + fine_samples.t_edges[:, :-1])
+            lit = transmittance_before(coarse.weights, coarse.t_edges, centres)
+            fine_live = fine_live & (lit >= budget.stop_transmittance)
+        fine_field, fine_dropped, fine_capacity = self._query_live(
+            fine_samples, flat, keys(3), fine_live, budget.fine_fraction
+        )
+        fine = self.composite(fine_field, fine_samples, flat)
+        report = BudgetReport(
+            evaluations=coarse_capacity + fine_capacity,
+            dense=num_rays * self.samples_per_ray,
+            coarse_live=jnp.sum(coarse_live),
+            fine_live=jnp.sum(fine_live),
+            dropped=coarse_dropped + fine_dropped,
+        )
+        return RenderOutputs(coarse=coarse, fine=fine), report
 
     def render_ray(self, ray: RayBundle, *, key: PRNGKey | None = None) -> RenderOutputs:
         """Renders one ray (empty batch shape); `key=None` renders deterministically."""

@@ -50,6 +50,7 @@ from .failure import FailedRunWarning, blank_image, failure, recent_train_psnr
 from .sharding import DataParallel, data_parallel_mesh
 from .state import (
     StepMetrics,
+    budget_bucket,
     TrainState,
     draw_batch,
     init_train_state,
@@ -88,7 +89,39 @@ def _scalars(metrics: StepMetrics) -> dict[str, float]:
     values.update(
         psnr=float(metrics.psnr), lr=float(metrics.learning_rate), lambda_colour=float(metrics.lambda_colour)
     )
+    if terms.samples is not None:
+        evaluations, coarse, fine, dropped, _, _ = (float(x) for x in np.asarray(terms.samples))
+        values.update(field_evaluations=evaluations, live_samples=coarse + fine, dropped_samples=dropped)
     return values
+
+
+class _Steps:
+    """The jitted training step for each sample-budget bucket, each compiled once (one bucket,
+    the dense step, without `occupancy.train_skipping`). Every `occupancy.train_budget_every`
+    steps the buckets follow the live shares the last step measured (`budget_bucket`)."""
+
+    def __init__(self, config: Config, wrap: Callable[[Any], Any]):
+        self.config, self.wrap = config, wrap
+        self.steps: dict[tuple[float, float], Any] = {}
+        self.budget = (1.0, 1.0)
+
+    def __call__(self, state: TrainState, batch: Any) -> tuple[TrainState, StepMetrics]:
+        step = self.steps.get(self.budget)
+        if step is None:
+            step = self.wrap(make_train_step(self.config, max_traces=1, budget=self.budget))
+            self.steps[self.budget] = step
+        return step(state, batch)
+
+    def measure(self, done: int, metrics: StepMetrics) -> None:
+        occupancy = self.config.occupancy
+        samples = metrics.terms.samples
+        if samples is None or not _due(done, occupancy.train_budget_every):
+            return
+        _, coarse, fine, _, coarse_dense, fine_dense = (float(x) for x in np.asarray(samples))
+        self.budget = (
+            budget_bucket(coarse / coarse_dense, occupancy.train_headroom),
+            budget_bucket(fine / fine_dense, occupancy.train_headroom),
+        )
 
 
 class _RunLog:
@@ -406,14 +439,15 @@ def _fit_holding(
     (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
     start = int(state.step)
     last_step = train.max_steps if stop_after is None else min(train.max_steps, stop_after)
-    data, take_step = training_rays(dataset, config.loss), make_train_step(config, max_traces=1)
+    data = training_rays(dataset, config.loss)
     draw = eqx.filter_jit(draw_batch)
+    take_step = _Steps(config, lambda step: step)
     mesh = data_parallel_mesh(train.data_parallel, train.batch_size)
     if mesh is not None:
         # The same step, its batch split over the devices; state and rays on every device.
         parallel = DataParallel(mesh)
         state, data = parallel.replicate(state), parallel.replicate(data)
-        take_step, draw = parallel.step(take_step), parallel.draw(draw_batch)
+        take_step, draw = _Steps(config, parallel.step), parallel.draw(draw_batch)
     eval_every = train.eval_every
     if eval_every and dataset.val is None:
         print(f"no periodic evaluation: {dataset.name} has no validation views ({dataset.val_source})")
@@ -438,6 +472,7 @@ def _fit_holding(
                 raise_if_interrupted()
             for done in range(start + 1, last_step + 1):
                 state, metrics = take_step(state, draw(data, state, train.batch_size))
+                take_step.measure(done, metrics)
                 evaluate_now = _due(done, eval_every) and done < train.max_steps
                 checkpoint_now = _due(done, train.checkpoint_every)
                 log_now = _due(done, log_every) or done == last_step

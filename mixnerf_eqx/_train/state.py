@@ -7,6 +7,7 @@ notebook and the benchmarks all start from these two, as MultiNeRF's train, eval
 scripts share one `setup_model`.
 """
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -21,6 +22,7 @@ from .._config import Config, LossConfig, OccupancyConfig, OptimConfig, schedule
 from .._custom_types import PoseStack, PRNGKey
 from .._inference.camera_path import orbit_path, spiral_path
 from .._inference.occupancy import OccupancyGrid, empty_grid, frustum_box, update_occupancy
+from .._nn.budget import SampleBudget
 from .._nn.model import MixNeRF, build_model
 from .._nn.rays import Box, RayBundle, radius_box
 from ..data import Dataset, rays_at_poses, rays_for_views
@@ -272,8 +274,14 @@ def _all_finite(tree: Any) -> Bool[Array, ""]:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
+def budget_bucket(live_share: float, headroom: float) -> float:
+    """The buffer share for a level whose live share was `live_share`: plus `headroom`,
+    rounded up to eighths, at most 1."""
+    return min(1.0, math.ceil(8 * (live_share + headroom) - 1e-9) / 8)
+
+
 def make_train_step(
-    config: Config, *, max_traces: int | None = None
+    config: Config, *, max_traces: int | None = None, budget: tuple[float, float] = (1.0, 1.0)
 ) -> Callable[[TrainState, Batch], tuple[TrainState, StepMetrics]]:
     """The jitted training step `(state, batch) -> (state, metrics)`.
 
@@ -282,10 +290,15 @@ def make_train_step(
     whose loss or gradients are not finite leaves the model and the optimiser state exactly
     as they were (only `step` advances, so the next step draws another batch). With
     `max_traces`, tracing more often than that raises (a guard against recompiles).
+
+    With `occupancy.train_skipping`, the step evaluates the field within buffers of `budget`
+    = (coarse, fine) shares of the samples (`budget_bucket`), from the step where the
+    occupancy grid has looked at every cell (densely before).
     """
     weights = LossWeights.from_config(config.loss, config.method)
-    loss_cfg, train_cfg = config.loss, config.train
+    loss_cfg, train_cfg, occupancy = config.loss, config.train, config.occupancy
     lengths = schedule_steps(config)
+    skips = occupancy.enabled and occupancy.train_skipping
 
     def train_step(state: TrainState, batch: Batch) -> tuple[TrainState, StepMetrics]:
         step_number = state.step + 1
@@ -310,8 +323,26 @@ def make_train_step(
             patches = anneal_sample_space(
                 patches, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
             )
+        sample_budget = ready = None
+        if skips and state.grid is not None:
+            # The grid only skips space it has looked at: dense steps until every cell is evaluated.
+            sample_budget = SampleBudget(
+                occupancy=state.grid.cells(),
+                coarse_fraction=budget[0],
+                fine_fraction=budget[1],
+                stop_transmittance=occupancy.train_stop_transmittance,
+            )
+            ready = state.grid.fully_evaluated()
         (_, terms), grads = eqx.filter_value_and_grad(scheduled_loss, has_aux=True)(
-            state.model, rays, batch.rgb, lambda_colour, weights, key=_step_keys(state)[1], patches=patches
+            state.model,
+            rays,
+            batch.rgb,
+            lambda_colour,
+            weights,
+            key=_step_keys(state)[1],
+            patches=patches,
+            budget=sample_budget,
+            budget_ready=ready,
         )
         params = eqx.filter(state.model, eqx.is_array)
         updates, new_opt_state = state.optimizer.update(grads, state.opt_state, params)

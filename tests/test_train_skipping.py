@@ -1,0 +1,165 @@
+"""Training that skips: the budgeted render against the dense one, the samples it keeps and
+drops, the coarse transmittance it stops on, its buckets, and a training step that equals the
+dense step when nothing can be skipped."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import TINY_SHARED_OVERRIDES
+
+import mixnerf_eqx as mx
+from mixnerf_eqx import ConfigError
+from mixnerf_eqx._nn.budget import AbstractOccupancy, SampleBudget, budget_capacity, transmittance_before
+from mixnerf_eqx._train.state import budget_bucket, make_train_step
+from mixnerf_eqx.data import load_dataset
+
+
+class HalfSpace(AbstractOccupancy):
+    """Occupied where x <= 0."""
+
+    def occupied(self, points):
+        return points[..., 0] <= 0.0
+
+
+@pytest.fixture(scope="module")
+def grid_setup():
+    config = mx.load_config("builtin_grid", [*TINY_SHARED_OVERRIDES, "occupancy.enabled=true", "occupancy.resolution=16"])
+    dataset = load_dataset(config.data)
+    state = mx.init_train_state(config, dataset)
+    data = mx.training_rays(dataset, config.loss)
+    batch = mx.draw_batch(data, state, 48)
+    return config, dataset, state, batch
+
+
+def _leaves_equal(a, b):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_a_budget_of_every_sample_renders_as_the_dense_render(grid_setup):
+    _, _, state, batch = grid_setup
+    key = jax.random.key(7)
+    dense = state.model(batch.rays, key=key)
+    within, report = state.model.render_within(batch.rays, SampleBudget(), key=key)
+    _leaves_equal(dense, within)
+    assert report.evaluations == report.dense == 48 * state.model.samples_per_ray
+    assert int(report.dropped) == 0
+    # Deterministic renders too.
+    _leaves_equal(state.model(batch.rays), state.model.render_within(batch.rays, SampleBudget())[0])
+
+
+def test_empty_samples_are_not_evaluated_and_the_rest_are_the_dense_values(grid_setup):
+    _, _, state, batch = grid_setup
+    within, report = state.model.render_within(batch.rays, SampleBudget(occupancy=HalfSpace()))
+    dense_field = state.model.query_field(state.model.sample_coarse(batch.rays), batch.rays)
+    coarse = within.coarse.field
+    means = state.model.sample_coarse(batch.rays).means
+    live = np.asarray(means[..., 0] <= 0.0)
+    assert 0 < live.sum() < live.size
+    np.testing.assert_array_equal(np.asarray(coarse.density)[~live], 0.0)
+    np.testing.assert_array_equal(np.asarray(coarse.beta)[~live], 1.0)
+    np.testing.assert_allclose(np.asarray(coarse.density)[live], np.asarray(dense_field.density)[live], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(coarse.rgb)[live], np.asarray(dense_field.rgb)[live], rtol=1e-6)
+    # Unevaluated samples have zero weight: the mixture is over the samples kept.
+    np.testing.assert_array_equal(np.asarray(within.coarse.weights)[~live], 0.0)
+    assert int(report.coarse_live) == live.sum() and int(report.dropped) == 0
+
+
+def test_a_buffer_too_small_drops_the_farthest_samples_of_every_ray(grid_setup):
+    _, _, state, batch = grid_setup
+    num_coarse = state.model.coarse_sampler.num_samples
+    budget = SampleBudget(coarse_fraction=0.5, fine_fraction=1.0)
+    within, report = state.model.render_within(batch.rays, budget)
+    density = np.asarray(within.coarse.field.density)
+    dense = np.asarray(state.model.query_field(state.model.sample_coarse(batch.rays), batch.rays).density)
+    # Half the buffer: every ray keeps its first half of samples (sample-major order).
+    assert (density[:, num_coarse // 2 :] == 0).all()
+    np.testing.assert_allclose(density[:, : num_coarse // 2], dense[:, : num_coarse // 2], rtol=1e-6)
+    assert int(report.dropped) == 48 * num_coarse // 2
+    assert report.evaluations == 48 * num_coarse // 2 + 48 * state.model.fine_sampler.num_samples
+
+
+def test_the_coarse_transmittance_in_front_of_each_point_against_numpy():
+    rng = np.random.default_rng(1)
+    weights = rng.uniform(0, 0.2, (3, 5))
+    edges = np.sort(rng.uniform(2, 6, (3, 6)), axis=1)
+    t = rng.uniform(1.5, 6.5, (3, 7))
+    found = np.asarray(transmittance_before(jnp.asarray(weights), jnp.asarray(edges), jnp.asarray(t)))
+    for ray in range(3):
+        for j, point in enumerate(t[ray]):
+            # Intervals wholly before the point: those whose right edge is at most... the
+            # interval holding the point is the last one whose left edge is <= point.
+            holding = np.searchsorted(edges[ray], point, side="right") - 1
+            before = weights[ray, : max(holding, 0)].sum() if holding < 5 else weights[ray].sum()
+            assert found[ray, j] == pytest.approx(1.0 - before, abs=1e-6)
+
+
+def test_finished_rays_stop_on_the_fine_level(grid_setup):
+    config, _, state, batch = grid_setup
+    # A dense fog: rays finish early.
+    fog = dataclasses.replace(config, model=dataclasses.replace(config.model, density_bias=6.0))
+    opaque = mx.build_model(fog, key=jax.random.key(0))
+    plain, _ = opaque.render_within(batch.rays, SampleBudget())
+    stopped, report = opaque.render_within(batch.rays, SampleBudget(stop_transmittance=1e-3))
+    fine_dense = 48 * opaque.fine_sampler.num_samples
+    assert int(report.fine_live) < fine_dense
+    # What the stopped samples could add is below the threshold: the colours barely move.
+    np.testing.assert_allclose(np.asarray(stopped.fine.rgb), np.asarray(plain.fine.rgb), atol=5e-3)
+
+
+def test_buckets_and_capacities():
+    assert budget_bucket(0.3, 0.1) == 0.5  # 0.4 rounded up to eighths
+    assert budget_bucket(0.25, 0.0) == 0.25 and budget_bucket(0.95, 0.1) == 1.0
+    assert budget_capacity(0.5, 10, 3) == 15 and budget_capacity(0.01, 10, 3) == 1
+    with pytest.raises(ValueError, match="coarse_fraction must lie in"):
+        SampleBudget(coarse_fraction=0.0)
+    with pytest.raises(ValueError, match="stop_transmittance"):
+        SampleBudget(stop_transmittance=1.0)
+
+
+def test_a_skipping_step_with_nothing_to_skip_equals_the_dense_step(grid_setup):
+    config, dataset, state, batch = grid_setup
+    # Every cell evaluated and occupied: the budgeted branch runs, and keeps every sample.
+    grid = eqx.tree_at(lambda g: g.density, state.grid, jnp.full_like(state.grid.density, 1e3))
+    state = eqx.tree_at(lambda s: s.grid, state, grid)
+    occupancy = dataclasses.replace(config.occupancy, train_skipping=True, train_stop_transmittance=0.0)
+    skipping = dataclasses.replace(config, occupancy=occupancy)
+    dense_state, dense_metrics = make_train_step(config)(state, batch)
+    skip_step = make_train_step(skipping, max_traces=1)
+    skip_state, skip_metrics = skip_step(state, batch)
+    # The loss is bit-identical; the updated parameters agree to float32 rounding (XLA compiles
+    # the step with its two branches as another program, and the grid's scatter-add gradient
+    # may sum in another order: 1 ulp on about 0.1% of the entries).
+    assert float(dense_metrics.terms.total) == float(skip_metrics.terms.total)
+    for x, y in zip(
+        jax.tree_util.tree_leaves(eqx.filter(dense_state.model, eqx.is_array)),
+        jax.tree_util.tree_leaves(eqx.filter(skip_state.model, eqx.is_array)),
+        strict=True,
+    ):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2.5e-7, atol=1e-9)
+    assert dense_metrics.terms.samples is None
+    evaluations, coarse, fine, dropped, coarse_dense, fine_dense = np.asarray(skip_metrics.terms.samples)
+    assert evaluations == coarse + fine == coarse_dense + fine_dense and dropped == 0
+    # The same bucket again: no second trace (max_traces=1 would raise).
+    skip_step(skip_state, batch)
+
+
+def test_before_the_grid_has_looked_everywhere_steps_are_dense(grid_setup):
+    config, _, state, batch = grid_setup
+    assert not bool(state.grid.fully_evaluated())  # a new grid: every cell unevaluated
+    occupancy = dataclasses.replace(config.occupancy, train_skipping=True)
+    step = make_train_step(dataclasses.replace(config, occupancy=occupancy), budget=(0.125, 0.125))
+    _, metrics = step(state, batch)
+    evaluations, coarse, fine, dropped, coarse_dense, fine_dense = np.asarray(metrics.terms.samples)
+    assert evaluations == coarse_dense + fine_dense and dropped == 0
+
+
+def test_training_skipping_needs_the_grid():
+    with pytest.raises(ConfigError, match="occupancy.train_skipping needs occupancy.enabled"):
+        mx.load_config("builtin_grid", ["occupancy.train_skipping=true"])
+    with pytest.raises(ConfigError, match="occupancy.train_headroom"):
+        mx.load_config("builtin_grid", ["occupancy.enabled=true", "occupancy.train_headroom=2.0"])
