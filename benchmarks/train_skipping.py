@@ -1,0 +1,123 @@
+"""Training that skips against dense training, seed by seed, in one run of this script.
+
+For each seed, the same config trains twice in fresh processes, one after the other: dense
+(`occupancy.train_skipping=false`) and skipping (`occupancy.enabled=true
+occupancy.train_skipping=true` and any `--skip-set` overrides). Both keep the occupancy grid
+(`occupancy.enabled=true`), so the two differ only in what the step evaluates. The table gives,
+per seed and mode: field evaluations per step after the grid's warm-up (from
+`train_log.jsonl`), the median seconds per step (steps after the 20th), the wall time of the
+whole command, and the final validation and test PSNR (`metrics.json`); then the paired
+ratios (dense / skipping) and the paired PSNR differences (skipping - dense, Student-t 95%).
+
+    python benchmarks/train_skipping.py --seeds 0 1 2                      # the quick start
+    python benchmarks/train_skipping.py --config blender4_grid --seeds 0 --set data.data_dir='"../shared/data"'
+
+Output: `--out` (default `benchmarks/results/train_skipping_<backend>`) `.json` and `.md`.
+"""
+
+import argparse
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import harness
+from fidelity import paired_verdict, verdict_cell
+
+MODES = {
+    "dense": ("occupancy.enabled=true", "occupancy.train_skipping=false"),
+    "skipping": ("occupancy.enabled=true", "occupancy.train_skipping=true"),
+}
+
+
+def train(config: str | None, seed: int, mode: str, run_dir: Path, overrides: list[str]) -> dict[str, Any]:
+    """One training in a fresh process; its figures."""
+    shutil.rmtree(run_dir, ignore_errors=True)
+    command = [sys.executable, "-m", "mixnerf_eqx.train", "--no-progress"]
+    if config:
+        command += ["--config", config]
+    command += [f"train.seed={seed}", f'train.run_dir="{run_dir}"', *MODES[mode], *overrides]
+    start = time.perf_counter()
+    finished = subprocess.run(command, cwd=harness.REPO, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if finished.returncode != 0:
+        raise SystemExit(f"{' '.join(command)} failed:\n{finished.stderr[-3000:]}")
+    log = [json.loads(line) for line in (run_dir / "train_log.jsonl").read_text().splitlines()]
+    steps = [e for e in log if "psnr" in e]
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    evaluations = [e["field_evaluations"] for e in steps if "field_evaluations" in e]
+    skipped_phase = [e for e in steps if e.get("field_evaluations", 0) < evaluations[0]] if evaluations else []
+    return {
+        "seed": seed,
+        "mode": mode,
+        "wall_s": wall,
+        "median_step_s": statistics.median(1.0 / e["steps_per_s"] for e in steps if e["step"] > 20),
+        "dense_evaluations_per_step": evaluations[0] if evaluations else None,
+        "mean_evaluations_per_step": statistics.fmean(evaluations) if evaluations else None,
+        "first_skipping_step": skipped_phase[0]["step"] if skipped_phase else None,
+        "dropped_samples": sum(e.get("dropped_samples", 0.0) for e in steps),
+        "val_psnr": (metrics.get("val") or {}).get("psnr"),
+        "test_psnr": metrics["test"]["psnr"],
+        "failure": metrics.get("failure"),
+    }
+
+
+def table(runs: list[dict[str, Any]]) -> str:
+    lines = [
+        "| seed | mode | field evaluations per step (mean) | median s per step | wall s | val PSNR | test PSNR |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for run in runs:
+        lines.append(
+            f"| {run['seed']} | {run['mode']} | {run['mean_evaluations_per_step']:,.0f} | "
+            f"{run['median_step_s'] * 1000:.1f} ms | {run['wall_s']:.0f} | {run['val_psnr']:.2f} | {run['test_psnr']:.2f} |"
+        )
+    by = {(r["seed"], r["mode"]): r for r in runs}
+    seeds = sorted({r["seed"] for r in runs if (r["seed"], "dense") in by and (r["seed"], "skipping") in by})
+    lines += ["", "| paired over seeds | dense / skipping, or skipping - dense |", "|---|---|"]
+    for key, label in (
+        ("mean_evaluations_per_step", "field evaluations per step"),
+        ("median_step_s", "median seconds per step"),
+        ("wall_s", "wall time"),
+    ):
+        ratios = [by[(s, "dense")][key] / by[(s, "skipping")][key] for s in seeds]
+        lines.append(f"| {label} | " + " / ".join(f"{r:.2f}x" for r in ratios) + " |")
+    for split in ("val", "test"):
+        key = f"{split}_psnr"
+        found = paired_verdict(
+            {s: by[(s, "skipping")][key] for s in seeds}, {s: by[(s, "dense")][key] for s in seeds}, True
+        )
+        lines.append(f"| {split} PSNR, skipping - dense | {verdict_cell(found)} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", default=None, help="packaged config or file (default: the quick start's)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--set", nargs="*", default=[], help="overrides for both modes")
+    parser.add_argument("--skip-set", nargs="*", default=[], help="overrides for the skipping runs only")
+    parser.add_argument("--runs-root", type=Path, default=harness.REPO / "runs" / "train_skipping")
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args(argv)
+    out = args.out or harness.RESULTS / f"train_skipping_{harness.platform_tag()}"
+    runs = []
+    for seed in args.seeds:
+        for mode in MODES:
+            extra = [*args.set, *(args.skip_set if mode == "skipping" else [])]
+            run = train(args.config, seed, mode, args.runs_root / f"seed_{seed}_{mode}", extra)
+            print(json.dumps(run), flush=True)
+            runs.append(run)
+    text = table(runs)
+    print(text, end="")
+    harness.write_json(out.with_suffix(".json"), {"config": args.config, "set": args.set, "skip_set": args.skip_set, "runs": runs})
+    harness.write_markdown(out.with_suffix(".md"), text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
