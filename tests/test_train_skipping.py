@@ -3,6 +3,7 @@ drops, the coarse transmittance it stops on, its buckets, and a training step th
 dense step when nothing can be skipped."""
 
 import dataclasses
+import json
 
 import equinox as eqx
 import jax
@@ -163,3 +164,35 @@ def test_training_skipping_needs_the_grid():
         mx.load_config("builtin_grid", ["occupancy.train_skipping=true"])
     with pytest.raises(ConfigError, match="occupancy.train_headroom"):
         mx.load_config("builtin_grid", ["occupancy.enabled=true", "occupancy.train_headroom=2.0"])
+
+
+def test_a_grid_that_empties_every_sample_falls_back_to_dense_steps(tiny_config, tiny_scene):
+    # A box of radius 0.01 around the origin: every sample lies outside it, so the grid calls
+    # every sample empty once it has looked at its cells (after the first update).
+    occupancy = dataclasses.replace(
+        tiny_config.occupancy,
+        enabled=True,
+        train_skipping=True,
+        box_radius=0.01,
+        resolution=4,
+        update_every=1,
+        update_fraction=1.0,
+        train_budget_every=1,
+    )
+    config = dataclasses.replace(
+        tiny_config,
+        occupancy=occupancy,
+        train=dataclasses.replace(tiny_config.train, max_steps=4, eval_every=0),
+    )
+    with pytest.warns(mx.SettingWarning, match="training goes on with dense steps"):
+        result = mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False, log_every=1)
+    assert "box_radius" in result.metrics["skipping_fallback"]
+    log = [json.loads(line) for line in (result.run_dir / "train_log.jsonl").read_text().splitlines()]
+    assert any("warning" in entry for entry in log)
+    # Before it, the budgeted step found no live sample; after it, the steps are the dense
+    # step (which logs no sample counts).
+    warned = next(entry["step"] for entry in log if "warning" in entry)
+    budgeted = [entry for entry in log if "field_evaluations" in entry]
+    assert budgeted and budgeted[-1]["live_samples"] == 0 and budgeted[-1]["step"] == warned
+    assert [entry["step"] for entry in log if "psnr" in entry and entry["step"] > warned]
+    assert not [entry for entry in log if "field_evaluations" in entry and entry["step"] > warned]

@@ -100,28 +100,49 @@ class _Steps:
     the dense step, without `occupancy.train_skipping`). Every `occupancy.train_budget_every`
     steps the buckets follow the live shares the last step measured (`budget_bucket`)."""
 
+    # Below this share of live coarse samples the grid is taken to be wrong (it would starve
+    # the field of gradient): training falls back to dense steps for the rest of the run.
+    MIN_LIVE_SHARE = 0.01
+
     def __init__(self, config: Config, wrap: Callable[[Any], Any]):
         self.config, self.wrap = config, wrap
-        self.steps: dict[tuple[float, float], Any] = {}
-        self.budget = (1.0, 1.0)
+        self.steps: dict[tuple[float, float] | None, Any] = {}
+        self.budget: tuple[float, float] | None = (1.0, 1.0)
+        self.fallback: str | None = None
 
     def __call__(self, state: TrainState, batch: Any) -> tuple[TrainState, StepMetrics]:
         step = self.steps.get(self.budget)
         if step is None:
-            step = self.wrap(make_train_step(self.config, max_traces=1, budget=self.budget))
+            if self.budget is None:  # the dense step, after a fallback
+                dense = dataclasses.replace(
+                    self.config, occupancy=dataclasses.replace(self.config.occupancy, train_skipping=False)
+                )
+                step = self.wrap(make_train_step(dense, max_traces=1))
+            else:
+                step = self.wrap(make_train_step(self.config, max_traces=1, budget=self.budget))
             self.steps[self.budget] = step
         return step(state, batch)
 
-    def measure(self, done: int, metrics: StepMetrics) -> None:
+    def measure(self, done: int, metrics: StepMetrics) -> str | None:
+        """Follows the live shares; returns a warning when it falls back to dense steps."""
         occupancy = self.config.occupancy
         samples = metrics.terms.samples
-        if samples is None or not _due(done, occupancy.train_budget_every):
-            return
+        if self.budget is None or samples is None or not _due(done, occupancy.train_budget_every):
+            return None
         _, coarse, fine, _, coarse_dense, fine_dense = (float(x) for x in np.asarray(samples))
+        if coarse / coarse_dense < self.MIN_LIVE_SHARE:
+            self.budget = None
+            self.fallback = (
+                f"step {done}: the occupancy grid marks {coarse / coarse_dense:.1%} of the coarse samples "
+                f"occupied, which would starve the field: training goes on with dense steps. Check "
+                "occupancy.box_radius (does the box hold the scene?) and occupancy.density_threshold."
+            )
+            return self.fallback
         self.budget = (
             budget_bucket(coarse / coarse_dense, occupancy.train_headroom),
             budget_bucket(fine / fine_dense, occupancy.train_headroom),
         )
+        return None
 
 
 class _RunLog:
@@ -472,7 +493,10 @@ def _fit_holding(
                 raise_if_interrupted()
             for done in range(start + 1, last_step + 1):
                 state, metrics = take_step(state, draw(data, state, train.batch_size))
-                take_step.measure(done, metrics)
+                fallback = take_step.measure(done, metrics)
+                if fallback is not None:
+                    log.warning(done, fallback)
+                    warnings.warn(fallback, SettingWarning, stacklevel=2)
                 evaluate_now = _due(done, eval_every) and done < train.max_steps
                 checkpoint_now = _due(done, train.checkpoint_every)
                 log_now = _due(done, log_every) or done == last_step
@@ -508,6 +532,8 @@ def _fit_holding(
     if done >= train.max_steps:
         with _rendering_after_training(done, run_dir):
             metrics = _final_report(config, dataset, state, run_dir, write_renders, metrics, progress)
+        if take_step.fallback is not None:
+            metrics["skipping_fallback"] = take_step.fallback
         metrics = _record_failure(metrics, dataset, log, done, failed_at, run_dir)
     return TrainResult(state=state, metrics=metrics, run_dir=run_dir, history=log.history)
 
