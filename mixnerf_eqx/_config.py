@@ -246,6 +246,7 @@ _SCHEDULE_KEYS = (
     ("grid", "coarse_to_fine"),
 )
 _INT32_MAX = 2**31 - 1
+SEED_MAX = 2**32 - 1  # the largest seed: JAX's keys take seeds modulo 2^32
 
 # Range of every numeric setting: (section.key, check, what the check asks).
 _RANGES: tuple[tuple[str, Any, str], ...] = (
@@ -322,6 +323,8 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
     ("grid.hash_table_log2", *_within(3, 30)),
     ("mlp.max_deg", *_at_least(1)),
     ("train.max_steps", lambda value: value <= _INT32_MAX, f"must be at most {_INT32_MAX} (int32 steps)"),
+    # JAX keys take the seed modulo 2^32: wider seeds would alias (seed 2^32 trains as seed 0).
+    ("train.seed", lambda value: 0 <= value <= SEED_MAX, f"must lie in [0, {SEED_MAX}] (wider seeds alias)"),
     ("train.anneal_start", *_within(0, 1, low_open=True)),
     *((key, *_within(0, 1)) for key in (f"{section}.{name}_fraction" for section, name in _SCHEDULE_KEYS)),
     ("train.anneal_mid", *_within(0, 1)),

@@ -86,6 +86,14 @@ def test_bad_literal_and_bad_value(tmp_path):
         load_config(None, ["train.batch_size=0"])
 
 
+@pytest.mark.parametrize("seed", ["-1", "4294967296", "9223372036854775807", "99999999999999999999"])
+def test_a_seed_outside_32_bits_is_refused_not_aliased(seed):
+    # JAX's keys take seeds modulo 2^32: 4294967296 would have trained as seed 0.
+    with pytest.raises(ConfigError, match=r"train.seed must lie in \[0, 4294967295\] \(wider seeds alias\)"):
+        load_config(None, [f"train.seed={seed}"])
+    assert load_config(None, ["train.seed=4294967295"]).train.seed == 4294967295
+
+
 def test_overrides_parse_toml_values():
     config = load_config(
         None, ["train.max_steps=12", "loss.lambda_depth=0.5", "model.lindisp=true", "train.run_dir=somewhere"]

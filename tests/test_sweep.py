@@ -126,7 +126,10 @@ def test_a_sweep_resumes_what_is_unfinished_and_reads_what_is_finished(tmp_path,
     ("arguments", "message"),
     [
         (["--seeds", "a,b"], "--seeds must be comma-separated integers"),
-        (["--seeds", "-1"], "--seeds must list non-negative integers"),
+        (["--seeds", "-1"], "--seeds must list integers in [0, 4294967295]"),
+        # Seeds alias modulo 2^32: 4294967296 would train as seed 0.
+        (["--seeds", "0,4294967296"], "--seeds must list integers in [0, 4294967295] (wider seeds alias)"),
+        (["--seeds", "99999999999999999999"], "--seeds must list integers in [0, 4294967295]"),
         (["--config", "configs/nothing.toml"], "does not exist"),
         (["--config", "nothing"], "no packaged config named nothing"),
         (["--engine", "submitit", "--timeout-min", "0"], "--timeout-min must be positive"),
@@ -138,6 +141,7 @@ def test_the_sweep_refuses_meaningless_arguments(tmp_path, arguments, message, c
     assert sweep.main(["--out", str(tmp_path), *arguments]) == 2
     error = capsys.readouterr().err.strip()
     assert error.startswith("error: ") and message in error and "\n" not in error
+    assert not list(tmp_path.iterdir())  # refused before any folder is made
 
 
 def test_missing_scene_files_fail_that_run_only(tmp_path, capsys):

@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .._config import ConfigError, load_config, replace_setting
+from .._config import SEED_MAX, ConfigError, load_config, replace_setting
 from .._train.loop import TrainingDiverged
 from .._train.sweep import (
     SweepRun,
@@ -77,8 +77,8 @@ def _seeds(text: str) -> list[int]:
         seeds = [int(part) for part in text.split(",") if part.strip()]
     except ValueError:
         raise ConfigError(f"--seeds must be comma-separated integers, got {text!r}") from None
-    if not seeds or any(seed < 0 for seed in seeds):
-        raise ConfigError(f"--seeds must list non-negative integers, got {text!r}")
+    if not seeds or any(not 0 <= seed <= SEED_MAX for seed in seeds):
+        raise ConfigError(f"--seeds must list integers in [0, {SEED_MAX}] (wider seeds alias), got {text!r}")
     return seeds
 
 
