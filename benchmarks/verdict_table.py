@@ -41,8 +41,8 @@ ROWS = (
         "built-in",
         "4 x 64x64",
         "quick start (tri-plane), 1,800 steps",
-        "validation (steps, priors); its test views, earlier (grid)",
-        "quickstart_verdict_cpu.json",
+        "validation away from test (steps, priors, ramp; 5 seeds); its test views, earlier (grid)",
+        "quickstart5_verdict_cpu.json",
         "builtin",
     ),
     Row(

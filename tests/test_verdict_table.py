@@ -64,7 +64,7 @@ def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp
             }
         },
     }
-    (tmp_path / "quickstart_verdict_cpu.json").write_text(json.dumps(sweep))
+    (tmp_path / "quickstart5_verdict_cpu.json").write_text(json.dumps(sweep))
 
     lines = verdict_table.markdown(tmp_path).splitlines()
     assert len(lines) == 2 + len(verdict_table.ROWS)
@@ -82,7 +82,7 @@ def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp
 
     # A sweep record of something else against MixNeRF is refused, not shown as MixNeRF's.
     sweep["names"] = ["background", "MixNeRF"]
-    (tmp_path / "quickstart_verdict_cpu.json").write_text(json.dumps(sweep))
+    (tmp_path / "quickstart5_verdict_cpu.json").write_text(json.dumps(sweep))
     with pytest.raises(SystemExit, match="compares background with MixNeRF"):
         verdict_table.markdown(tmp_path)
 
