@@ -99,6 +99,22 @@ def test_eval_of_the_validation_views(trained, tiny_scene, capsys):
     assert not set(tiny_scene.val.ids) & set(tiny_scene.test.ids)
 
 
+def test_eval_of_validation_views_a_scene_lacks_is_one_line_and_status_2(tmp_path, capsys):
+    from helpers import TINY_OVERRIDES
+
+    from mixnerf_eqx import load_config
+
+    config = load_config("builtin", [*TINY_OVERRIDES, "data.num_val_views=0"])
+    config = _with_train(config, max_steps=2, eval_every=0, run_dir=str(tmp_path / "run"))
+    fit(config, progress=False, write_renders=False)
+    capsys.readouterr()
+    code = eval_main([str(tmp_path / "run"), "--split", "val", "--no-progress", "--no-lpips"])
+    error = capsys.readouterr().err.strip()
+    assert code == 2
+    assert error.startswith("error: ") and "has no validation views" in error and "\n" not in error
+    assert not (tmp_path / "run" / "eval_val").exists()
+
+
 def test_eval_of_a_subset_and_without_lpips(trained, tiny_scene, tmp_path):
     out = tmp_path / "subset"
     code = eval_main(

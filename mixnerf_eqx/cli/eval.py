@@ -153,10 +153,7 @@ def run(args: argparse.Namespace) -> dict:
     config, dataset = restored.config, restored.dataset
     grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
     chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
-    try:
-        views = dataset.split(args.split)
-    except ValueError as error:
-        raise SystemExit(f"error: {error}") from None
+    views = dataset.split(args.split)  # a split the scene lacks: one line, status 2
     view_ids = None
     if args.max_views > 0:
         view_ids = evenly_spaced(views.num_views, min(args.max_views, views.num_views))
