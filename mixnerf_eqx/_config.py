@@ -713,6 +713,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
     # All overrides are applied at once, so that settings that must change together (the
     # method and its loss weights) can be given as separate overrides.
     merged: dict[str, Any] = {}
+    origin: dict[tuple[str, ...], str] = {}  # who set each value: the override to blame
     for override in overrides:
         key, sep, raw = override.partition("=")
         if not sep or not key:
@@ -723,11 +724,15 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
             value = raw
         parts = key.strip().split(".")
         cursor = merged
-        for part in parts[:-1]:
+        for depth, part in enumerate(parts[:-1]):
             cursor = cursor.setdefault(part, {})
             if not isinstance(cursor, dict):
-                raise ConfigError(f"override {override!r}: {part} is not a section")
+                culprit = origin.get(tuple(parts[: depth + 1]), override)
+                raise ConfigError(
+                    f"override {culprit!r}: {part} is a section, not a value; give section.key=value"
+                )
         cursor[parts[-1]] = value
+        origin[tuple(parts)] = override
     if not merged:
         return config
     listed = ", ".join(repr(o) for o in overrides)

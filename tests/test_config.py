@@ -94,6 +94,12 @@ def test_a_seed_outside_32_bits_is_refused_not_aliased(seed):
     assert load_config(None, ["train.seed=4294967295"]).train.seed == 4294967295
 
 
+def test_an_override_that_sets_a_section_is_the_one_blamed():
+    # `train=3` made `train` a value; the later `train.max_steps=3` is not at fault.
+    with pytest.raises(ConfigError, match=r"override 'train=3': train is a section, not a value"):
+        load_config(None, ["train=3", "train.max_steps=3"])
+
+
 def test_overrides_parse_toml_values():
     config = load_config(
         None, ["train.max_steps=12", "loss.lambda_depth=0.5", "model.lindisp=true", "train.run_dir=somewhere"]
