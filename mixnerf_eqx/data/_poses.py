@@ -1,5 +1,7 @@
 """Camera pose utilities shared by the loaders (float64 numpy, OpenGL camera convention)."""
 
+import math
+
 import numpy as np
 from jaxtyping import Float
 
@@ -31,12 +33,43 @@ def parse_transform_matrix(value: object, what: str) -> Float[np.ndarray, "3 4"]
         matrix = np.asarray(value, np.float64)
     except (TypeError, ValueError):
         matrix = np.zeros(0)
-    if matrix.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(matrix)):
+    if matrix.shape not in ((4, 4), (3, 4)):
         raise DatasetError(
             f"{what} has shape {matrix.shape}; expected a finite 4x4 camera-to-world matrix. "
             "Repair the file or export it again."
         )
+    check_camera(matrix[:3, :4], what)
     return matrix[:3, :4]
+
+
+# How far `R^T R` of a camera's rotation part may lie from the identity (exported files hold
+# rotations to float32's precision, about 1e-7).
+ROTATION_TOLERANCE = 1e-3
+
+
+def check_camera(matrix: Float[np.ndarray, "3 4"], what: str) -> None:
+    """A camera-to-world matrix must be finite with a rotation in its left 3x3 block: a
+    `DatasetError` that starts with `what` (the file and camera) otherwise."""
+    matrix = np.asarray(matrix, np.float64)
+    if not np.all(np.isfinite(matrix)):
+        raise DatasetError(f"{what} holds a value that is not finite (NaN or inf). Repair the file or export it again.")
+    rotation = matrix[:3, :3]
+    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if error > ROTATION_TOLERANCE:
+        raise DatasetError(
+            f"{what}: its 3x3 part is not a rotation (R^T R is {error:.3g} from the identity, at most "
+            f"{ROTATION_TOLERANCE:g} allowed): a zero, scaled or sheared camera. Repair the file or export it again."
+        )
+
+
+def check_field_of_view(value: object, what: str) -> float:
+    """A field of view in radians: a finite number in (0, pi); a `DatasetError` naming `what` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not 0 < value < math.pi:
+        raise DatasetError(
+            f"{what} is {value!r}; a field of view must be a finite angle in radians between 0 and pi "
+            "(exclusive). Repair the file or export it again."
+        )
+    return float(value)
 
 
 def _homogeneous(poses: np.ndarray) -> np.ndarray:

@@ -49,7 +49,7 @@ from ._files import (
     read_json,
     to_float,
 )
-from ._poses import parse_transform_matrix
+from ._poses import check_field_of_view, parse_transform_matrix
 from ._splits import describe_validation, near_test, subsample_test_ids, validation_ids
 
 __all__ = ["SCENES", "load_blender", "split_ids"]
@@ -116,6 +116,7 @@ def _frames(meta: Any, path: Path) -> list[dict]:
         raise DatasetError(
             f"{path}: 'camera_angle_x' (the horizontal field of view) is missing or not a number."
         )
+    check_field_of_view(meta["camera_angle_x"], f"{path}: 'camera_angle_x'")
     for index, frame in enumerate(meta["frames"]):
         if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
             raise DatasetError(f"{path}: frame {index} has no 'file_path'.")

@@ -26,7 +26,7 @@ from ._dataset import Dataset, Views
 from ._downscale import check_factor, downscale_centred_camera, downscale_image
 from ._errors import DatasetError
 from ._files import check_same_size, list_images, read_images, read_npy, require_dir
-from ._poses import recenter_poses
+from ._poses import check_camera, recenter_poses
 from ._splits import describe_validation, holdout_split, subsample_test_ids, validation_ids
 
 __all__ = ["SCENES", "llff_poses", "load_llff"]
@@ -69,8 +69,15 @@ def llff_poses(
     if np.any(bounds <= 0):
         raise DatasetError(f"{source}: some depth bounds are not positive. Regenerate the file.")
     height, width, focal = (float(v) for v in poses[0, :, 4])
+    if not (height > 0 and width > 0 and focal > 0):
+        raise DatasetError(
+            f"{source}: the first camera's height, width and focal length are {height:g}, {width:g}, "
+            f"{focal:g}; each must be positive. Regenerate the file."
+        )
     # LLFF's columns are (down, right, backward); OpenGL's are (right, up, backward).
     camtoworlds = np.concatenate([poses[:, :, 1:2], -poses[:, :, 0:1], poses[:, :, 2:4]], axis=2)
+    for index, camera in enumerate(camtoworlds):
+        check_camera(camera, f"{source}: camera {index}")
     # Scale the scene so that the nearest content lies just beyond the NDC near plane (1).
     scale = 1.0 / (bounds.min() * BOUND_FACTOR)
     camtoworlds[:, :, 3] *= scale

@@ -41,7 +41,7 @@ from ._files import (
     read_images,
     read_json,
 )
-from ._poses import parse_transform_matrix
+from ._poses import check_field_of_view, parse_transform_matrix
 from ._splits import describe_validation, holdout_split, subsample_test_ids, validation_ids
 
 __all__ = ["default_bounds", "load_transforms"]
@@ -82,10 +82,15 @@ def _frame_intrinsics(
         angle_x = _number(frame, meta, "camera_angle_x", path)
         if angle_x is None:
             raise DatasetError(f"{path}: no focal length for {image.name}: give fl_x (or camera_angle_x).")
-        focal_x = 0.5 * width / math.tan(0.5 * angle_x)
+        focal_x = 0.5 * width / math.tan(0.5 * check_field_of_view(angle_x, f"{path}: camera_angle_x of {image.name}"))
     if focal_y is None:
         angle_y = _number(frame, meta, "camera_angle_y", path)
+        if angle_y is not None:
+            check_field_of_view(angle_y, f"{path}: camera_angle_y of {image.name}")
         focal_y = focal_x if angle_y is None else 0.5 * height / math.tan(0.5 * angle_y)
+    for name, focal in (("fl_x", focal_x), ("fl_y", focal_y)):
+        if not math.isfinite(focal) or focal <= 0:
+            raise DatasetError(f"{path}: {name} of {image.name} is {focal!r}; a focal length must be finite and positive.")
     cx = _number(frame, meta, "cx", path)
     cy = _number(frame, meta, "cy", path)
     return intrinsic_matrix(
