@@ -10,6 +10,7 @@ for the model is decided where the model is built (`mixnerf_eqx._nn.model.build_
 """
 
 import dataclasses
+import math
 import importlib.resources
 import tomllib
 import types
@@ -480,9 +481,23 @@ def validate(config: "Config") -> None:
         for key, check, wanted in ranges
         if not check(_setting(config, key))
     ]
+    problems += _non_finite(config)
     problems += _consistency_problems(config)
     if problems:
         raise ConfigError("; ".join(problems))
+
+
+def _non_finite(config: "Config") -> list[str]:
+    """Every float setting must be finite: no key documents inf or NaN (an infinite learning
+    rate or bound only fails later, far from its cause)."""
+    problems = []
+    for section, schema in _SECTIONS.items():
+        values = getattr(config, section)
+        for field in dataclasses.fields(schema):
+            value = getattr(values, field.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                problems.append(f"{section}.{field.name} must be a finite number, got {value!r}")
+    return problems
 
 
 _TOP_LEVEL = ("name", "reproduces", "chosen_on", "method")

@@ -94,6 +94,15 @@ def test_a_seed_outside_32_bits_is_refused_not_aliased(seed):
     assert load_config(None, ["train.seed=4294967295"]).train.seed == 4294967295
 
 
+@pytest.mark.parametrize(
+    "override", ["optim.lr_init=inf", "loss.lambda_depth=inf", "data.far=inf", "model.density_bias=nan", "grid.tv_weight=-inf"]
+)
+def test_every_float_setting_must_be_finite(override):
+    key = override.split("=")[0]
+    with pytest.raises(ConfigError, match=f"{key} must be a finite number"):
+        load_config("builtin_grid", [override])
+
+
 def test_an_override_that_sets_a_section_is_the_one_blamed():
     # `train=3` made `train` a value; the later `train.max_steps=3` is not at fault.
     with pytest.raises(ConfigError, match=r"override 'train=3': train is a section, not a value"):
