@@ -86,3 +86,32 @@ def test_a_healthy_run_records_no_failure(tiny_config, tiny_scene):
         result = fit(config, dataset=tiny_scene, progress=False, write_renders=False, log_every=1)
     assert json.loads((result.run_dir / "metrics.json").read_text())["failure"] is None
     assert failure_module.MARGIN_DB == 1.0 and failure_module.FIT_GAP_DB == 6.0
+
+
+def test_a_run_with_non_finite_metrics_or_many_skipped_steps_is_not_a_result():
+    finite = {"psnr": 20.0, "ssim": 0.8, "lpips": None}
+    assert loop._unusable({"test": finite, "skipped_steps": 5}, 100) is None  # 5% is allowed
+    assert "6 of the 100 steps" in loop._unusable({"test": finite, "skipped_steps": 6}, 100)
+    assert "psnr, ssim are not finite" in loop._unusable(
+        {"test": {"psnr": float("nan"), "ssim": float("inf"), "lpips": None}, "skipped_steps": 0}, 100
+    )
+
+
+def test_the_train_command_exits_1_on_an_unusable_run(tmp_path, monkeypatch, capsys):
+    from types import SimpleNamespace
+
+    from mixnerf_eqx.cli import train as train_command
+
+    metrics = {
+        "step": 3,
+        "scene": "builtin",
+        "per_view": [],
+        "test": {"psnr": float("nan")},
+        "render": {},
+        "unusable": "the test psnr is not finite: the model diverged",
+    }
+    monkeypatch.setattr(train_command, "fit", lambda *a, **k: SimpleNamespace(metrics=metrics, run_dir=tmp_path))
+    monkeypatch.setattr(train_command, "_print_report", lambda *a: None)
+    assert train_command.main(["--no-progress", f"train.run_dir={str(tmp_path)!r}"]) == 1
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error == ["error: the run's results are not usable: the test psnr is not finite: the model diverged"]

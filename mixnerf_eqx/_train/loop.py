@@ -534,6 +534,7 @@ def _fit_holding(
             metrics = _final_report(config, dataset, state, run_dir, write_renders, metrics, progress)
         if take_step.fallback is not None:
             metrics["skipping_fallback"] = take_step.fallback
+        metrics["unusable"] = _unusable(metrics, done - start)
         metrics = _record_failure(metrics, dataset, log, done, failed_at, run_dir)
     return TrainResult(state=state, metrics=metrics, run_dir=run_dir, history=log.history)
 
@@ -619,6 +620,29 @@ def _final_report(
         staging.replace(renders)
     _write_replacing(run_dir / "metrics.json", strict_json.dumps(metrics, indent=2))
     return metrics
+
+
+# A run whose steps were skipped (non-finite loss or gradients) beyond this share of the steps
+# it trained is not a result, whatever its metrics say.
+MAX_SKIPPED_SHARE = 0.05
+
+
+def _unusable(metrics: dict[str, Any], trained: int) -> str | None:
+    """Why a finished run's results cannot be used (`None`: they can): a test metric that is
+    not finite, or too many skipped steps. The `train` command exits with status 1 on it."""
+    bad = [name for name, value in metrics["test"].items() if value is not None and not np.isfinite(value)]
+    if bad:
+        return (
+            f"the test {', '.join(bad)} {'is' if len(bad) == 1 else 'are'} not finite: the model diverged "
+            "(check the cameras, the scene bounds and the learning rate)"
+        )
+    skipped = metrics.get("skipped_steps", 0)
+    if trained > 0 and skipped > MAX_SKIPPED_SHARE * trained:
+        return (
+            f"{skipped} of the {trained} steps trained were skipped for a non-finite loss or gradient "
+            f"(more than {MAX_SKIPPED_SHARE:.0%}): check the cameras, the scene bounds and the learning rate"
+        )
+    return None
 
 
 def _record_failure(

@@ -131,6 +131,9 @@ def _train(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 130
     _print_report(result.metrics, result.run_dir)
+    if result.metrics.get("unusable"):
+        print(f"error: the run's results are not usable: {result.metrics['unusable']}", file=sys.stderr)
+        return 1
     return 0
 
 
