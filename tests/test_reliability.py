@@ -208,6 +208,44 @@ def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatc
     assert calls["count"] == 2
 
 
+def test_an_eval_interrupted_while_it_rewrites_its_folder_changes_nothing(tiny_config, tiny_scene, monkeypatch, capsys):
+    config = _with(tiny_config, "train", max_steps=2)
+    fit_quietly(config, tiny_scene)
+    from mixnerf_eqx.cli import eval as eval_command
+
+    run = Path(config.train.run_dir)
+    assert eval_command.main([str(run), "--no-progress", "--no-lpips"]) == 0
+    before = {p.name: p.read_bytes() for p in (run / "eval").iterdir()}
+    assert "metrics.json" in before and any(name.endswith(".png") for name in before)
+    original, calls = eval_command.write_view_renders, {"count": 0}
+
+    def interrupted(*args, **kwargs):
+        calls["count"] += 1
+        if calls["count"] == 2:
+            signal.raise_signal(signal.SIGINT)  # a real Ctrl-C after the first view's PNGs
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(eval_command, "write_view_renders", interrupted)
+    capsys.readouterr()
+    assert eval_command.main([str(run), "--no-progress", "--no-lpips", "--max-views", "2"]) == 130
+    assert "nothing was changed in the run" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in (run / "eval").iterdir()} == before
+    assert not (run / "eval.partial").exists() and not (run / "eval.old").exists()
+    # A replacement cut short between its two renames gives the old results back.
+    (run / "eval").rename(run / "eval.old")
+    monkeypatch.setattr(eval_command, "write_view_renders", original)
+    assert eval_command.main([str(run), "--no-progress", "--no-lpips", "--max-views", "1"]) == 0
+    assert json.loads((run / "eval" / "metrics.json").read_text())["num_views"] == 1
+    # A folder of the user's is never replaced.
+    mine = run.parent / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    capsys.readouterr()
+    assert eval_command.main([str(run), "--no-progress", "--no-lpips", "--out", str(mine)]) == 2
+    assert "holds files eval did not write (notes.txt)" in capsys.readouterr().err
+    assert (mine / "notes.txt").read_text() == "keep"
+
+
 def test_ctrl_c_in_the_final_render_leaves_the_run_folder_as_it_was(tiny_config, tiny_scene, monkeypatch):
     config = _with(tiny_config, "train", max_steps=2)
     run_dir = Path(config.train.run_dir)

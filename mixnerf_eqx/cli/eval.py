@@ -11,6 +11,7 @@ draws the run's training curves from its log into `RUN_DIR/curves.png` (with mat
 
 import argparse
 import math
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -32,6 +33,7 @@ from .._train.run_folder import (
 from .._util import json_io as strict_json
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.curves import plot_curves
+from .._util.interrupt import raise_if_interrupted
 from .._util.progress import Progress
 from .._util.typecheck import add_typecheck_argument
 from ..data import evenly_spaced
@@ -158,63 +160,115 @@ def run(args: argparse.Namespace) -> dict:
     if args.max_views > 0:
         view_ids = evenly_spaced(views.num_views, min(args.max_views, views.num_views))
     num_views = views.num_views if view_ids is None else len(view_ids)
-    out = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
-    out.mkdir(parents=True, exist_ok=True)
-    bar = Progress(num_views, unit="view", enabled=not args.no_progress)
-    chosen = views if view_ids is None else views.select(view_ids)
-
-    def after_view(index: int, entry: dict, rendered: Rendered) -> None:
-        if not args.no_renders:
-            truth = chosen.images[index]
-            write_view_renders(out, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
-        bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
-
+    final = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
+    out = _staging_folder(final)
     try:
-        evaluation = evaluate(
-            restored.model,
-            dataset,
-            chunk=chunk,
-            view_ids=view_ids,
-            with_lpips=not args.no_lpips,
-            on_view=after_view,
-            skipping=skipping,
-            split=args.split,
-        )
-    finally:
-        bar.close()
-    render = render_summary(evaluation.counts, evaluation.seconds, num_views, grid, choice)
-    render["grid_seconds"] = grid_seconds
-    lpips_note = "computed"
-    if args.no_lpips:
-        lpips_note = "skipped (--no-lpips)"
-    elif not lpips_available():
-        lpips_note = "unavailable: install the lpips extra (pip install -e '.[lpips]')"
-    result = {
-        "run_dir": str(run_dir),
-        "checkpoint": str(restored.checkpoint),
-        "step": restored.step,
-        "scene": dataset.name,
-        "split": args.split,
-        "num_views": num_views,
-        "lpips": lpips_note,
-        "seconds": evaluation.seconds + grid_seconds,
-        "render": render,
-        "mean": evaluation.means,
-        "per_view": evaluation.per_view,
-    }
-    if args.uncertainty:
-        result["uncertainty"] = _uncertainty(
-            restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
-        )
-    (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
-    _print_summary(result, grid, choice, out, not args.no_renders)
-    # After the metrics are safe: the run's training curves, beside its log.
+        bar = Progress(num_views, unit="view", enabled=not args.no_progress)
+        chosen = views if view_ids is None else views.select(view_ids)
+
+        def after_view(index: int, entry: dict, rendered: Rendered) -> None:
+            if not args.no_renders:
+                truth = chosen.images[index]
+                write_view_renders(out, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
+            bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
+
+        try:
+            evaluation = evaluate(
+                restored.model,
+                dataset,
+                chunk=chunk,
+                view_ids=view_ids,
+                with_lpips=not args.no_lpips,
+                on_view=after_view,
+                skipping=skipping,
+                split=args.split,
+            )
+        finally:
+            bar.close()
+        render = render_summary(evaluation.counts, evaluation.seconds, num_views, grid, choice)
+        render["grid_seconds"] = grid_seconds
+        lpips_note = "computed"
+        if args.no_lpips:
+            lpips_note = "skipped (--no-lpips)"
+        elif not lpips_available():
+            lpips_note = "unavailable: install the lpips extra (pip install -e '.[lpips]')"
+        result = {
+            "run_dir": str(run_dir),
+            "checkpoint": str(restored.checkpoint),
+            "step": restored.step,
+            "scene": dataset.name,
+            "split": args.split,
+            "num_views": num_views,
+            "lpips": lpips_note,
+            "seconds": evaluation.seconds + grid_seconds,
+            "render": render,
+            "mean": evaluation.means,
+            "per_view": evaluation.per_view,
+        }
+        if args.uncertainty:
+            result["uncertainty"] = _uncertainty(
+                restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
+            )
+        (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
+        raise_if_interrupted()  # a Ctrl-C during the evaluation stops it before the replacement
+        _put_in_place(out, final)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)  # the results there were stay whole
+        raise
+    _print_summary(result, grid, choice, final, not args.no_renders)
+    # After the results are in place: the run's training curves, beside its log.
     curves = plot_curves(run_dir)
     if curves is not None:
         result["curves"] = str(curves)
-        (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
+        staged = final / "metrics.json.partial"
+        staged.write_text(strict_json.dumps(result, indent=2))
+        staged.replace(final / "metrics.json")
         print(f"training curves: {curves}")
     return result
+
+
+# What eval writes: a folder holding anything else is not replaced (`--out` may name a folder
+# of the user's).
+_EVAL_SUFFIXES = {".png", ".json", ".npz"}
+
+
+def _staging_folder(final: Path) -> Path:
+    """A fresh folder beside `final` that receives every file of this evaluation; it replaces
+    `final` only when all are written (`_put_in_place`), so that an interrupted or failed
+    evaluation leaves the results there were whole."""
+    _recover(final)
+    if final.exists():
+        foreign = [p.name for p in final.iterdir() if not (p.is_file() and p.suffix in _EVAL_SUFFIXES)]
+        if not final.is_dir() or foreign:
+            raise ConfigError(
+                f"{final} holds files eval did not write ({', '.join(sorted(foreign)[:3]) or 'it is a file'}): "
+                "give --out a new or empty folder"
+            )
+    staging = final.with_name(final.name + ".partial")
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        staging.mkdir(parents=True)
+    except PermissionError:
+        raise ConfigError(f"{final.parent} is not writable: give --out a folder you can write to") from None
+    return staging
+
+
+def _recover(final: Path) -> None:
+    """Undoes a replacement cut short between its two renames (the old results come back)."""
+    old = final.with_name(final.name + ".old")
+    if old.exists() and not final.exists():
+        old.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _put_in_place(staging: Path, final: Path) -> None:
+    """Replaces `final` by `staging`: rename the old folder aside, the new one into place, and
+    remove the old one."""
+    old = final.with_name(final.name + ".old")
+    if final.exists():
+        final.rename(old)
+    staging.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def _uncertainty(restored: Run, views, chunk: int, out: Path, *, temperature: float, renders: bool) -> dict:
