@@ -72,6 +72,8 @@ JUSTIFIED_EXTRAS = frozenset(
         "entries",
         # Grid lookups: the texels or cell corners blended for one point.
         "corners",
+        # Training that skips: a batch's samples as one flat list (rays x samples).
+        "points",
     }
 )
 

@@ -79,10 +79,10 @@ def budget_capacity(fraction: float, num_rays: int, num_samples: int) -> int:
 
 
 def transmittance_before(
-    weights: Float[Array, "batch num_coarse"],
-    coarse_edges: Float[Array, "batch num_coarse+1"],
-    t: Float[Array, "batch num_fine"],
-) -> Float[Array, "batch num_fine"]:
+    weights: Float[Array, "batch num_prev_edges-1"],
+    coarse_edges: Float[Array, "batch num_prev_edges"],
+    t: Float[Array, "batch num_samples"],
+) -> Float[Array, "batch num_samples"]:
     """The coarse level's transmittance in front of the coarse interval holding each `t`:
     `1 - sum` of the weights of the intervals before it (1 before the first, the light past
     the last interval after it)."""
