@@ -207,7 +207,9 @@ def test_uncertainty_panel_from_the_predictive_distribution(trained_run):
     ("arguments", "message"),
     [
         (["--frames", "0"], "--frames must be a positive number"),
-        (["--fps", "-1"], "--fps must be positive"),
+        (["--fps", "-1"], "--fps must be a number of frames per second in [0.1, 1000]"),
+        (["--fps", "inf"], "--fps must be a number of frames per second in [0.1, 1000], got inf"),
+        (["--fps", "1e-9"], "--fps must be a number of frames per second in [0.1, 1000], got 1e-09"),
         (["--out", "video.gif"], "--out must name an .mp4 file"),
     ],
 )

@@ -9,6 +9,7 @@ time in chunks of rays (memory stays bounded) and written to `RUN_DIR/video/<pat
 """
 
 import argparse
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -56,8 +57,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def _check_arguments(args: argparse.Namespace) -> None:
     if args.frames < 1:
         raise ConfigError(f"--frames must be a positive number of frames, got {args.frames}")
-    if not args.fps > 0:
-        raise ConfigError(f"--fps must be positive, got {args.fps}")
+    # Encoders take frame rates as rationals of bounded terms: a rate outside [0.1, 1000]
+    # fails inside the encoder (an infinite one as a broken pipe).
+    if not (math.isfinite(args.fps) and 0.1 <= args.fps <= 1000):
+        raise ConfigError(f"--fps must be a number of frames per second in [0.1, 1000], got {args.fps:g}")
     if args.chunk is not None and args.chunk < 1:
         raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
     if args.out is not None and args.out.suffix.lower() != ".mp4":
