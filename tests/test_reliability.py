@@ -246,6 +246,43 @@ def test_an_eval_interrupted_while_it_rewrites_its_folder_changes_nothing(tiny_c
     assert (mine / "notes.txt").read_text() == "keep"
 
 
+def test_a_run_records_its_scene_and_eval_refuses_other_data(tiny_config, tiny_scene, capsys):
+    from mixnerf_eqx._train.run_folder import dataset_fingerprint
+    from mixnerf_eqx.cli import eval as eval_command
+    from mixnerf_eqx.data.procedural import make_builtin_scene
+
+    config = _with(tiny_config, "train", max_steps=2)
+    fit_quietly(config, tiny_scene)
+    run = Path(config.train.run_dir)
+    record = json.loads((run / "dataset.json").read_text())
+    assert record == {"root": None, "scene": "builtin", "fingerprint": dataset_fingerprint(tiny_scene)}
+    # The same run against other data: refused, naming both fingerprints.
+    other = make_builtin_scene(resolution=32, num_train_views=4, num_test_views=3, num_val_views=2)
+    assert dataset_fingerprint(other) != record["fingerprint"]
+    with pytest.raises(ConfigError, match="holds other data"):
+        mx.runs.restore_run(run, dataset=other)
+    # A changed file under the same name is other data too: the fingerprint sees the pixels.
+    changed = dataclasses.replace(
+        tiny_scene, test=dataclasses.replace(tiny_scene.test, images=tiny_scene.test.images * 0.5)
+    )
+    with pytest.raises(ConfigError, match="holds other data"):
+        mx.runs.restore_run(run, dataset=changed)
+    # eval loads the scene its config names: the same data, so it runs.
+    assert eval_command.main([str(run), "--no-progress", "--no-lpips", "--no-renders"]) == 0
+    assert json.loads((run / "eval" / "metrics.json").read_text())["dataset"] == record
+    assert json.loads((run / "metrics.json").read_text())["dataset"] == record
+
+
+def test_a_relative_data_dir_is_stored_absolute(tiny_config, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data").mkdir()
+    config = _with(tiny_config, "data", data_dir="data")
+    config = _with(config, "train", max_steps=1, run_dir=str(tmp_path / "run"))
+    mx.fit(config, progress=False, write_renders=False)
+    stored = json.loads((tmp_path / "run" / "config.json").read_text())["data"]["data_dir"]
+    assert stored == str((tmp_path / "data").resolve())
+
+
 def test_ctrl_c_in_the_final_render_leaves_the_run_folder_as_it_was(tiny_config, tiny_scene, monkeypatch):
     config = _with(tiny_config, "train", max_steps=2)
     run_dir = Path(config.train.run_dir)

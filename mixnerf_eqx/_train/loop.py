@@ -39,8 +39,11 @@ from .checkpoint import (
     save_checkpoint,
 )
 from .run_folder import (
+    DATASET_RECORD,
+    check_dataset,
     check_resumable,
     continued_config,
+    dataset_record,
     grid_for_rendering,
     make_skipping,
     render_summary,
@@ -454,10 +457,18 @@ def _fit_holding(
 ) -> TrainResult:
     """`fit`, once the run folder is this process's."""
     train = config.train
+    if config.data.data_dir and not Path(config.data.data_dir).expanduser().is_absolute():
+        # Stored absolute, so that `eval` from another folder reads the same files.
+        absolute = str(Path(config.data.data_dir).expanduser().resolve())
+        config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=absolute))
     dataset = load_dataset(config.data) if dataset is None else dataset
     config, state = _start_state(config, dataset, run_dir, resume)
     config_dict = config_to_dict(config)
     (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
+    record = dataset_record(config, dataset)
+    if int(state.step) > 0:
+        check_dataset(run_dir, config, dataset)  # a resumed run trains on the scene it began with
+    _write_replacing(run_dir / DATASET_RECORD, json.dumps(record, indent=2))
     start = int(state.step)
     last_step = train.max_steps if stop_after is None else min(train.max_steps, stop_after)
     data = training_rays(dataset, config.loss)
@@ -535,6 +546,7 @@ def _fit_holding(
         if take_step.fallback is not None:
             metrics["skipping_fallback"] = take_step.fallback
         metrics["unusable"] = _unusable(metrics, done - start)
+        metrics["dataset"] = record
         metrics = _record_failure(metrics, dataset, log, done, failed_at, run_dir)
     return TrainResult(state=state, metrics=metrics, run_dir=run_dir, history=log.history)
 

@@ -6,6 +6,7 @@ starting state with `init_train_state` and reads the checkpoint into it.
 """
 
 import dataclasses
+import hashlib
 import json
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from .._inference.threshold import ThresholdChoice, choose_threshold, threshold_
 from .._nn.model import MixNeRF
 from .._util.images import colourise_depth, save_png
 from ..data import Dataset, load_dataset
+from ..data._registry import data_root
 from .checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, load_latest_readable
 from .state import TrainState, init_train_state, make_occupancy_grid
 
@@ -153,6 +155,7 @@ def restore_run(
     if data_dir is not None:
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=data_dir))
     dataset = load_dataset(config.data) if dataset is None else dataset
+    check_dataset(run_dir, config, dataset)
     like = init_train_state(config, dataset)
     if checkpoint is not None:
         return Run(config, dataset, load_checkpoint(checkpoint, like), Path(checkpoint))
@@ -229,4 +232,54 @@ def check_resumable(
     if changed:
         raise ConfigError(
             f"{checkpoint} was written with different settings ({', '.join(changed)}); {remedy}"
+        )
+
+
+# --- What a run was trained against ------------------------------------------------------------
+
+DATASET_RECORD = "dataset.json"
+
+
+def dataset_fingerprint(dataset: Dataset) -> str:
+    """A content hash of a loaded scene: its name, bounds and every split's images and cameras
+    (sha256 over the float32 bytes), so that another folder holding other files is told apart."""
+    digest = hashlib.sha256()
+    digest.update(f"{dataset.name} {dataset.near!r} {dataset.far!r}".encode())
+    for split in (dataset.train, dataset.test, dataset.val):
+        if split is None:
+            digest.update(b"none")
+            continue
+        for array in (split.images, split.camtoworlds):
+            digest.update(np.ascontiguousarray(np.asarray(array, np.float32)).tobytes())
+        digest.update(repr(split.ids).encode())
+    return digest.hexdigest()[:16]
+
+
+def dataset_record(config: Config, dataset: Dataset) -> dict:
+    """What `dataset.json` holds: the absolute dataset root (`None` for the built-in scene),
+    the scene and its fingerprint."""
+    root = None
+    if config.data.dataset != "builtin":
+        try:
+            root = str(data_root(config.data).resolve())
+        except ValueError:  # a scene handed to `fit` directly, from no configured root
+            root = None
+    return {"root": root, "scene": dataset.name, "fingerprint": dataset_fingerprint(dataset)}
+
+
+def check_dataset(run_dir: Path, config: Config, dataset: Dataset) -> None:
+    """Raises `ConfigError` when the scene loaded for a run is not the one it trained on
+    (a run folder written before the record passes)."""
+    path = run_dir / DATASET_RECORD
+    if not path.is_file():
+        return
+    recorded = json.loads(path.read_text())
+    found = dataset_record(config, dataset)
+    if found["fingerprint"] != recorded.get("fingerprint"):
+        where = f" from {found['root']}" if found["root"] else ""
+        hint = f": pass --data-dir {recorded['root']}" if recorded.get("root") else ""
+        raise ConfigError(
+            f"{run_dir} was trained on {recorded.get('scene')} from {recorded.get('root') or 'the built-in scene'} "
+            f"(fingerprint {recorded.get('fingerprint')}), but the scene loaded now{where} holds other data "
+            f"(fingerprint {found['fingerprint']}){hint}"
         )

@@ -24,6 +24,7 @@ from .._inference.evaluation import Rendered, evaluate
 from .._predictive.uncertainty import calibration_report, predict_views, write_uncertainty_maps
 from .._train.run_folder import (
     Run,
+    dataset_record,
     grid_for_rendering,
     make_skipping,
     render_summary,
@@ -197,6 +198,7 @@ def run(args: argparse.Namespace) -> dict:
             "checkpoint": str(restored.checkpoint),
             "step": restored.step,
             "scene": dataset.name,
+            "dataset": dataset_record(config, dataset),
             "split": args.split,
             "num_views": num_views,
             "lpips": lpips_note,
