@@ -254,7 +254,6 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
     *(
         (key, *_POSITIVE)
         for key in (
-            "data.resolution",
             "data.num_train_views",
             "data.num_test_views",
             "data.image_downscale",
@@ -320,6 +319,8 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
         )
     ),
     ("grid.min_resolution", *_at_least(2)),
+    # The held-out metrics need 32 pixels a side (LPIPS's network 31, SSIM an 11-pixel window).
+    ("data.resolution", lambda value: value >= 32, "must be at least 32 (LPIPS and SSIM score images of 32 pixels a side or more)"),
     ("loss.smoothness_patch_size", *_at_least(2)),
     ("grid.hash_table_log2", *_within(3, 30)),
     ("mlp.max_deg", *_at_least(1)),

@@ -103,6 +103,13 @@ def test_every_float_setting_must_be_finite(override):
         load_config("builtin_grid", [override])
 
 
+@pytest.mark.parametrize("resolution", [8, 30, 31])
+def test_a_built_in_scene_too_small_to_score_is_refused_before_training(resolution):
+    with pytest.raises(ConfigError, match="data.resolution must be at least 32"):
+        load_config(None, [f"data.resolution={resolution}"])
+    assert load_config(None, ["data.resolution=32"]).data.resolution == 32
+
+
 def test_an_override_that_sets_a_section_is_the_one_blamed():
     # `train=3` made `train` a value; the later `train.max_steps=3` is not at fault.
     with pytest.raises(ConfigError, match=r"override 'train=3': train is a section, not a value"):
