@@ -674,9 +674,11 @@ def _load_file(path: Path, chain: tuple[Path, ...]) -> Config:
     if path.resolve() in chain:
         raise ConfigError(f"{path}: 'extends' forms a cycle")
     try:
-        values = tomllib.loads(path.read_text())
+        values = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{path}: not valid TOML: {error}") from None
+    except UnicodeDecodeError as error:
+        raise ConfigError(f"{path}: not a UTF-8 text file (byte {error.start}); save it as UTF-8 TOML") from None
     base = Config()
     parent = values.pop("extends", None)
     if parent is not None:

@@ -110,6 +110,13 @@ def test_a_built_in_scene_too_small_to_score_is_refused_before_training(resoluti
     assert load_config(None, ["data.resolution=32"]).data.resolution == 32
 
 
+def test_a_config_file_that_is_not_utf8_is_named(tmp_path):
+    path = tmp_path / "latin.toml"
+    path.write_bytes("name = 'caf\u00e9'\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match="latin.toml: not a UTF-8 text file"):
+        load_config(str(path))
+
+
 def test_an_override_that_sets_a_section_is_the_one_blamed():
     # `train=3` made `train` a value; the later `train.max_steps=3` is not at fault.
     with pytest.raises(ConfigError, match=r"override 'train=3': train is a section, not a value"):

@@ -54,6 +54,11 @@ def read_json(path: Path, what: str, advice: str) -> Any:
 def read_npy(path: Path, what: str, advice: str) -> np.ndarray:
     """Loads a `.npy` array; a missing or unreadable file is a `DatasetError` naming it as `what`."""
     require_file(path, what, advice)
+    with open(path, "rb") as file:
+        magic = file.read(6)
+    if magic != b"\x93NUMPY":
+        # numpy reads anything else as a pickle, and its refusal speaks of pickles.
+        raise DatasetError(f"{path}: not a .npy array file (it does not start with numpy's header). {advice}")
     try:
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:

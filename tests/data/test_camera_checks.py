@@ -110,3 +110,11 @@ def test_a_field_of_view_is_accepted_exactly_in_0_to_pi(value):
     else:
         with pytest.raises(DatasetError, match="fov is"):
             check_field_of_view(value, "fov")
+
+
+def test_a_garbage_poses_file_is_named_without_numpys_pickle_text(tmp_path):
+    write_llff(tmp_path / "scene")
+    (tmp_path / "scene" / "poses_bounds.npy").write_bytes(b"not an array at all" * 4)
+    with pytest.raises(DatasetError, match="poses_bounds.npy: not a .npy array file") as raised:
+        load_llff(tmp_path / "scene", num_train_views=3)
+    assert "pickle" not in str(raised.value)
