@@ -167,6 +167,19 @@ def test_resume_refuses_changed_settings(tiny_config, tiny_scene):
     assert fit(moved, dataset=tiny_scene, progress=False, write_renders=False).metrics["step"] == 2
 
 
+def test_a_shorter_rerun_names_train_max_steps_not_the_decay(tiny_config, tiny_scene):
+    # Stopped after 1 of its 4 steps, then run again with 2.
+    config = _with_train(tiny_config, max_steps=4)
+    fit(config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=1)
+    shorter = _with_train(config, max_steps=2)
+    with pytest.raises(ConfigError, match="the run began with train.max_steps = 4") as raised:
+        fit(shorter, dataset=tiny_scene, progress=False, write_renders=False)
+    assert "optim.decay_steps=4" in str(raised.value) and "->" not in str(raised.value)
+    # The remedy it names works: the same schedule, stopped at 2.
+    same = dataclasses.replace(shorter, optim=dataclasses.replace(shorter.optim, decay_steps=4))
+    assert fit(same, dataset=tiny_scene, progress=False, write_renders=False).metrics["step"] == 2
+
+
 def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, monkeypatch):
     config = _with_train(tiny_config, max_steps=2)
     fit(config, dataset=tiny_scene, progress=False, write_renders=False)

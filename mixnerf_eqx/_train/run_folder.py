@@ -229,6 +229,22 @@ def check_resumable(
     # Read through the schema, so that keys older versions wrote compare as they are read now.
     stored = config_to_dict(config_from_dict(stored, str(checkpoint / "meta.json"), written_by_a_run=True))
     changed = _differences(_comparable(stored), _comparable(config_to_dict(config)))
+    began = stored.get("train", {}).get("max_steps")
+    if (
+        len(changed) == 1
+        and changed[0].startswith("optim.decay_steps:")
+        and not stored.get("optim", {}).get("decay_steps")
+        and not config.optim.decay_steps
+        and began is not None
+        and config.train.max_steps < began
+    ):
+        # Only the horizon differs, because train.max_steps is shorter than the run's.
+        raise ConfigError(
+            f"{checkpoint}: the run began with train.max_steps = {began}, and its learning rate decays over "
+            f"those steps; train.max_steps = {config.train.max_steps} is shorter. Give train.max_steps >= "
+            f"{began}, or add optim.decay_steps={began} to stop at {config.train.max_steps} on the same "
+            f"schedule, or {remedy}"
+        )
     if changed:
         raise ConfigError(
             f"{checkpoint} was written with different settings ({', '.join(changed)}); {remedy}"
