@@ -80,7 +80,8 @@ def test_a_traced_bad_level_fails_when_computed():
 
 @pytest.mark.parametrize(
     "temperature",
-    [-1, 0, -1.0, 0.0, math.nan, math.inf, -math.inf, np.float32(-2.0), jnp.asarray(math.inf)],
+    # 1e-39 and 1e-45 are positive, but subnormal in float32: XLA flushes them to zero on the CPU.
+    [-1, 0, -1.0, 0.0, math.nan, math.inf, -math.inf, np.float32(-2.0), jnp.asarray(math.inf), 1e-39, 1e-45],
     ids=repr,
 )
 def test_a_temperature_must_be_finite_and_positive(temperature):
@@ -118,7 +119,7 @@ def test_metrics_json_is_strict_and_names_what_was_not_finite():
     assert json.loads(strict_json.dumps({"a": 1.5}), parse_constant=refuse) == {"a": 1.5}
 
 
-@pytest.mark.parametrize("value", ["inf", "nan", "-1", "0"])
+@pytest.mark.parametrize("value", ["inf", "nan", "-1", "0", "1e-45"])
 def test_eval_refuses_a_temperature_that_is_not_finite_and_positive(value, tmp_path):
     process = subprocess.run(
         [sys.executable, "-m", "mixnerf_eqx.eval", str(tmp_path), "--uncertainty", "--temperature", value],

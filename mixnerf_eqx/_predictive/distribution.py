@@ -432,12 +432,13 @@ def _in_unit_interval(dtype):
 
 
 def _finite_positive(dtype):
-    """The check that a number is finite and positive, and still is once cast to `dtype`."""
+    """The check that a number is finite and positive, and still is once cast to `dtype`, at
+    least `dtype`'s smallest normal number (XLA flushes subnormal numbers to zero on the CPU)."""
 
     def ok(xp, x):
         good = xp.isfinite(x) & (x > 0)
         cast = xp.asarray(xp.where(good & (xp.abs(x) < xp.finfo(dtype).max), x, 1.0), dtype)
-        return good & (xp.abs(x) < xp.finfo(dtype).max) & (cast > 0)
+        return good & (xp.abs(x) < xp.finfo(dtype).max) & (cast >= xp.finfo(dtype).tiny)
 
     return ok
 
@@ -466,7 +467,7 @@ def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
     return jnp.asarray(_checked(levels, _in_unit_interval(dtype), message), dtype)
 
 
-_TEMPERATURE_MESSAGE = "temperature must be a finite positive number"
+_TEMPERATURE_MESSAGE = "temperature must be a finite positive number, a normal float32 (at least 1.18e-38)"
 
 
 def _check_temperature(temperature: ScalarLike, dtype=None):

@@ -296,8 +296,11 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ConfigError("--temperature scales the predictive distribution: it needs --uncertainty")
     if args.temperature is None:
         args.temperature = 1.0
-    if not (math.isfinite(args.temperature) and args.temperature > 0):
-        raise ConfigError(f"--temperature must be a finite positive number, got {args.temperature}")
+    if not (math.isfinite(args.temperature) and np.finfo(np.float32).tiny <= args.temperature):
+        raise ConfigError(
+            f"--temperature must be a finite positive number, at least 1.18e-38 (a normal float32), "
+            f"got {args.temperature:g}"
+        )
     if args.max_views < 0:
         raise ConfigError(f"--max-views must be 0 (all test views) or positive, got {args.max_views}")
 
