@@ -67,10 +67,12 @@ def _mass_ok(mass) -> bool:
 
 
 def _temperature_ok(x, scales) -> bool:
-    """Finite and positive, in float64 and in float32, and its product with every scale of the
+    """Finite and positive, in float64 and in float32 (at least float32's smallest normal
+    number: XLA flushes subnormal ones to zero), and its product with every scale of the
     mixture (`scales`) finite and positive in float32 too."""
     value = _value(x)
-    if not (math.isfinite(value) and 0.0 < value < float(np.finfo(np.float32).max) and np.float32(value) > 0):
+    tiny = np.finfo(np.float32).tiny
+    if not (math.isfinite(value) and 0.0 < value < float(np.finfo(np.float32).max) and np.float32(value) >= tiny):
         return False
     with np.errstate(over="ignore", under="ignore"):
         product = np.asarray(scales, np.float32) * np.float32(value)

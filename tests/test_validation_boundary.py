@@ -2,6 +2,7 @@
 type (`docs/reliability.md`, "On bad input")."""
 
 import json
+import dataclasses
 import math
 import subprocess
 import sys
@@ -209,13 +210,28 @@ def test_zero_rays_give_empty_summaries_with_the_shapes_of_one(tiny_model):
 
 
 def test_rays_with_near_beyond_far_are_refused(tiny_model):
-    with pytest.raises(ValueError, match="finite bounds with near <= far: 3 of 3 rays do not"):
+    with pytest.raises(ValueError, match="and bounds with near <= far: 3 of 3 rays do not"):
         mx.predictive(tiny_model, _rays(3, near=6.0, far=2.0))
     for near, far in ((math.nan, 2.0), (2.0, math.inf), (-math.inf, 2.0)):
-        with pytest.raises(ValueError, match="finite bounds with near <= far: 3 of 3 rays do not"):
+        with pytest.raises(ValueError, match="and bounds with near <= far: 3 of 3 rays do not"):
             mx.predictive(tiny_model, _rays(3, near=near, far=far))
     with pytest.raises(Exception, match="near <= far"):
         mx.predict_rays(tiny_model, _rays(3, near=6.0, far=2.0), chunk=4)
+
+
+
+@pytest.mark.parametrize("where", ["origins", "directions"])
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_rays_with_a_nan_or_inf_origin_or_direction_are_refused(tiny_model, where, value):
+    # They rendered to plausible numbers (a NaN origin gave the far bound as the depth median).
+    rays = _rays(3)
+    broken = np.asarray(getattr(rays, where)).copy()
+    broken[1, 0] = value
+    rays = dataclasses.replace(rays, **{where: jnp.asarray(broken)})
+    with pytest.raises(ValueError, match="finite origins, directions and bounds .*: 1 of 3 rays do not"):
+        mx.predictive(tiny_model, rays)
+    with pytest.raises(ValueError, match="finite origins, directions"):
+        mx.predict_rays(tiny_model, rays, chunk=4)
 
 
 @pytest.mark.parametrize("bad", [{"temperature": math.inf}, {"temperature": -1.0}, {"masses": (0.5, 1.0)}])

@@ -516,18 +516,20 @@ class Predictive(eqx.Module):
 
 
 def _check_bounds(rays: RayBundle) -> RayBundle:
-    """`rays`, checked to have finite bounds with `near <= far` (the sampling interval would
-    otherwise be reversed or unbounded)."""
-    message = "rays must have finite bounds with near <= far"
+    """`rays`, checked to have finite origins and directions (a NaN or inf one rendered to
+    plausible-looking numbers: the far bound as the depth median) and finite bounds with
+    `near <= far` (the sampling interval would otherwise be reversed or unbounded)."""
+    message = "rays must have finite origins, directions and bounds with near <= far"
 
-    def bad(xp, near, far):
-        return ~(xp.isfinite(near) & xp.isfinite(far) & (near <= far))
+    def bad(xp, origins, directions, near, far):
+        geometry = xp.all(xp.isfinite(origins), axis=-1) & xp.all(xp.isfinite(directions), axis=-1)
+        return ~(geometry[..., None] & xp.isfinite(near) & xp.isfinite(far) & (near <= far))
 
-    if _is_traced((rays.near, rays.far)):
-        flagged = eqx.error_if(rays.near, jnp.any(bad(jnp, rays.near, rays.far)), message)
+    parts = (rays.origins, rays.directions, rays.near, rays.far)
+    if _is_traced(parts):
+        flagged = eqx.error_if(rays.near, jnp.any(bad(jnp, *parts)), message)
         return eqx.tree_at(lambda r: r.near, rays, flagged)
-    near, far = np.asarray(rays.near), np.asarray(rays.far)
-    count = int(np.sum(bad(np, near, far)))
+    count = int(np.sum(bad(np, *(np.asarray(p) for p in parts))))
     if count:
         raise ValueError(f"{message}: {count} of {math.prod(rays.batch_shape)} rays do not")
     return rays

@@ -30,6 +30,7 @@ from .distribution import (
     ColourMixture,
     PredictiveSummary,
     _check_level,
+    _check_bounds,
     _check_temperature,
     predictive,
     summarise,
@@ -91,6 +92,7 @@ def predict_rays(
         raise ValueError(f"chunk must be at least 1, got {chunk}")
     masses = tuple(float(_check_level(mass, "an interval mass")) for mass in masses)
     _check_temperature(temperature)
+    _check_bounds(rays)  # on the host: one ValueError, before any chunk is rendered
     batch_shape = rays.batch_shape
     if math.prod(batch_shape) == 0:
         return _no_rays(model, rays, masses, targets is not None, with_mode)
