@@ -220,6 +220,15 @@ def test_rays_with_near_beyond_far_are_refused(tiny_model):
 
 
 
+def test_colours_of_the_wrong_shape_are_named(tiny_model):
+    mixture = mx.predictive(tiny_model, _rays(3)).colour
+    for method in ("log_prob", "cdf"):
+        with pytest.raises(ValueError, match=rf"{method} takes one colour per ray, shape \(3, 3\).*got shape \(2, 3\)"):
+            getattr(mixture, method)(jnp.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"targets takes one colour per ray, shape \(3, 3\).*got shape \(3,\)"):
+        mx.predict_rays(tiny_model, _rays(3), chunk=4, targets=np.zeros(3))
+
+
 @pytest.mark.parametrize("where", ["origins", "directions"])
 @pytest.mark.parametrize("value", [math.nan, math.inf])
 def test_rays_with_a_nan_or_inf_origin_or_direction_are_refused(tiny_model, where, value):

@@ -249,6 +249,17 @@ class ColourMixture(eqx.Module):
     def _per_ray(self, fn, *extra):
         return _per_ray(self.batch_shape, fn, self.coefficients, self.location, self.scale, *extra)
 
+    def _colours(self, rgb, name: str) -> Array:
+        """`rgb`, checked to hold one colour per ray of the mixture: `(*batch_shape, channels)`."""
+        channels = self.location.shape[-1]
+        wanted = (*self.batch_shape, channels)
+        if tuple(jnp.shape(rgb)) != wanted:
+            raise ValueError(
+                f"{name} takes one colour per ray, shape {wanted} (the mixture's batch shape "
+                f"{self.batch_shape} and {channels} channels); got shape {tuple(jnp.shape(rgb))}"
+            )
+        return rgb
+
     def mean(self) -> Float[Array, "*batch channels"]:
         """`sum_j pi_j mu_jc`."""
         return jnp.sum(self.coefficients[..., None] * self.location, axis=-2)
@@ -269,7 +280,7 @@ class ColourMixture(eqx.Module):
         def one_ray(coefficients, location, scale, x):
             return jax.vmap(channel_cdf, in_axes=(0, None, 1, 1))(x, coefficients, location, scale)
 
-        return self._per_ray(one_ray, rgb)
+        return self._per_ray(one_ray, self._colours(rgb, "cdf"))
 
     def quantiles(self, levels: Levels) -> Float[Array, "_ *batch channels"]:
         """Per-channel quantiles at each of `levels` in (0, 1), stacked in front: one batched
@@ -313,7 +324,7 @@ class ColourMixture(eqx.Module):
         def one_ray(coefficients, location, scale, x):
             return joint_log_density(x, coefficients, location, scale)
 
-        return self._per_ray(one_ray, rgb)
+        return self._per_ray(one_ray, self._colours(rgb, "log_prob"))
 
     def mode(self) -> Float[Array, "*batch channels"]:
         """The mode of the joint RGB density (see `joint_mode`)."""

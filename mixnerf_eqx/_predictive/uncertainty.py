@@ -93,6 +93,11 @@ def predict_rays(
     masses = tuple(float(_check_level(mass, "an interval mass")) for mass in masses)
     _check_temperature(temperature)
     _check_bounds(rays)  # on the host: one ValueError, before any chunk is rendered
+    if targets is not None and tuple(np.shape(targets)) != (*rays.batch_shape, 3):
+        raise ValueError(
+            f"targets takes one colour per ray, shape {(*rays.batch_shape, 3)} (the rays' batch shape and "
+            f"3 channels); got shape {tuple(np.shape(targets))}"
+        )
     batch_shape = rays.batch_shape
     if math.prod(batch_shape) == 0:
         return _no_rays(model, rays, masses, targets is not None, with_mode)
