@@ -115,6 +115,11 @@ def _load_builtin(config: DataConfig) -> Dataset:
             f"scene is rendered at data.resolution (now {config.resolution}): set data.resolution "
             "instead and leave data.image_downscale at 1."
         )
+    if config.near != DataConfig.near or config.far != DataConfig.far:
+        raise DatasetError(
+            f"data.near = {config.near:g} and data.far = {config.far:g} apply to scenes on disk; the built-in "
+            "scene samples between its own bounds, 2 and 6 (its cameras are 4 from the origin): leave them unset."
+        )
     from .procedural import make_builtin_scene
 
     return make_builtin_scene(

@@ -241,3 +241,10 @@ def test_command_line_reports_one_error_line(tmp_path):
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1
     assert str(missing) in errors[0] and "not a folder" in errors[0]
+
+
+@pytest.mark.parametrize("bounds", [{"near": 1.0, "far": 7.0}, {"far": 9.0}])
+def test_bounds_set_for_the_built_in_scene_are_refused_not_ignored(bounds):
+    # They were ignored (the metrics were identical), while data.image_downscale was refused.
+    with pytest.raises(DatasetError, match="apply to scenes on disk; the built-in scene samples between its own bounds"):
+        load_dataset(DataConfig(**bounds))
