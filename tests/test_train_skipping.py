@@ -89,7 +89,7 @@ def test_the_coarse_transmittance_in_front_of_each_point_against_numpy():
     weights = rng.uniform(0, 0.2, (3, 5))
     edges = np.sort(rng.uniform(2, 6, (3, 6)), axis=1)
     t = rng.uniform(1.5, 6.5, (3, 7))
-    found = np.asarray(transmittance_before(jnp.asarray(weights), jnp.asarray(edges), jnp.asarray(t)))
+    found = np.asarray(transmittance_before(jnp.asarray(edges), jnp.asarray(weights), jnp.asarray(t)))
     for ray in range(3):
         for j, point in enumerate(t[ray]):
             # Intervals wholly before the point: those whose right edge is at most... the

@@ -79,8 +79,8 @@ def budget_capacity(fraction: float, num_rays: int, num_samples: int) -> int:
 
 
 def transmittance_before(
-    weights: Float[Array, "batch num_prev_edges-1"],
     coarse_edges: Float[Array, "batch num_prev_edges"],
+    weights: Float[Array, "batch num_prev_edges-1"],
     t: Float[Array, "batch num_samples"],
 ) -> Float[Array, "batch num_samples"]:
     """The coarse level's transmittance in front of the coarse interval holding each `t`:

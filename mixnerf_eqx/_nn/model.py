@@ -203,7 +203,7 @@ class MixNeRF(eqx.Module):
         fine_live = budget.live(fine_samples.means)
         if budget.stop_transmittance > 0:
             centres = 0.5 * (fine_samples.t_edges[:, 1:] + fine_samples.t_edges[:, :-1])
-            lit = transmittance_before(coarse.weights, coarse.t_edges, centres)
+            lit = transmittance_before(coarse.t_edges, coarse.weights, centres)
             fine_live = fine_live & (lit >= budget.stop_transmittance)
         fine_field, fine_dropped, fine_capacity = self._query_live(
             fine_samples, flat, keys(3), fine_live, budget.fine_fraction
