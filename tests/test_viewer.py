@@ -428,3 +428,20 @@ def test_each_browser_has_its_own_frustums_hidden_frustum_and_status(tiny_config
         assert first.frustums[test_view].visible
     finally:
         viewer.stop()
+
+
+@pytest.mark.parametrize(
+    ("host", "message"),
+    [
+        ("8.8.8.8", "--host 8.8.8.8 is not an address of this machine"),
+        ("999.1.1.1", "--host 999.1.1.1 is not an address or a known host name"),
+    ],
+)
+def test_a_host_this_machine_cannot_serve_on_is_refused_at_once(host, message):
+    # A server bound to another machine's address used to wait silently (binding here sends
+    # nothing over the network).
+    from mixnerf_eqx.cli.view import check_host
+
+    with pytest.raises(ValueError, match=message):
+        check_host(host)
+    check_host("127.0.0.1")

@@ -82,9 +82,10 @@ def _fit_with_viewer(config, args: argparse.Namespace):
     """`fit` with the web viewer showing the state between steps; it stops with the run."""
     from .._inference.viewer import Viewer
     from ..data import load_dataset
-    from .view import check_viewer_installed, serving_line
+    from .view import check_host, check_viewer_installed, serving_line
 
     check_viewer_installed()
+    check_host(args.viewer_host, "--viewer-host")
     dataset = load_dataset(config.data)
     viewer = Viewer(
         None,

@@ -8,6 +8,7 @@ first and refined while the camera is still. Ctrl-C stops the server.
 """
 
 import argparse
+import socket
 import sys
 import time
 
@@ -52,6 +53,27 @@ def add_viewer_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def check_host(host: str, flag: str = "--host") -> None:
+    """A `ValueError` unless `host` is an address this machine can serve on: a server bound to
+    another machine's address waits for nothing, silently (checked by binding a socket here,
+    which sends nothing)."""
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError):
+        raise ValueError(f"{flag} {host} is not an address or a known host name") from None
+    family, _, _, _, address = infos[0]
+    probe = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        probe.bind(address)
+    except OSError:
+        raise ValueError(
+            f"{flag} {host} is not an address of this machine: serve on 127.0.0.1 (this machine only) "
+            "or 0.0.0.0 (every interface)"
+        ) from None
+    finally:
+        probe.close()
+
+
 def check_viewer_installed() -> None:
     """A `ValueError` naming the extra when viser is missing."""
     try:
@@ -74,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def body() -> None:
         check_viewer_installed()
+        check_host(args.host)
         run = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
         viewer = Viewer(run.model, run.dataset, host=args.host, port=args.port, max_width=args.max_width)
         where = serving_line(viewer, args.port)
