@@ -49,15 +49,18 @@ def train(config: str | None, seed: int, mode: str, run_dir: Path, overrides: li
     log = [json.loads(line) for line in (run_dir / "train_log.jsonl").read_text().splitlines()]
     steps = [e for e in log if "psnr" in e]
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    evaluations = [e["field_evaluations"] for e in steps if "field_evaluations" in e]
-    skipped_phase = [e for e in steps if e.get("field_evaluations", 0) < evaluations[0]] if evaluations else []
+    config = json.loads((run_dir / "config.json").read_text())
+    dense = config["train"]["batch_size"] * (config["model"]["num_coarse_samples"] + config["model"]["num_fine_samples"])
+    # Dense steps log no sample counts: every sample of every ray is evaluated.
+    evaluations = [e.get("field_evaluations", dense) for e in steps]
+    skipped_phase = [e for e in steps if e.get("field_evaluations", dense) < dense]
     return {
         "seed": seed,
         "mode": mode,
         "wall_s": wall,
         "median_step_s": statistics.median(1.0 / e["steps_per_s"] for e in steps if e["step"] > 20),
-        "dense_evaluations_per_step": evaluations[0] if evaluations else None,
-        "mean_evaluations_per_step": statistics.fmean(evaluations) if evaluations else None,
+        "dense_evaluations_per_step": dense,
+        "mean_evaluations_per_step": statistics.fmean(evaluations),
         "first_skipping_step": skipped_phase[0]["step"] if skipped_phase else None,
         "dropped_samples": sum(e.get("dropped_samples", 0.0) for e in steps),
         "val_psnr": (metrics.get("val") or {}).get("psnr"),
