@@ -461,13 +461,15 @@ def _fit_holding(
         # Stored absolute, so that `eval` from another folder reads the same files.
         absolute = str(Path(config.data.data_dir).expanduser().resolve())
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=absolute))
+    loaded_here = dataset is None
     dataset = load_dataset(config.data) if dataset is None else dataset
     config, state = _start_state(config, dataset, run_dir, resume)
     config_dict = config_to_dict(config)
     (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
     record = dataset_record(config, dataset)
-    if int(state.step) > 0:
-        check_dataset(run_dir, config, dataset)  # a resumed run trains on the scene it began with
+    if int(state.step) > 0 and loaded_here:
+        # A resumed run trains on the scene it began with (a scene handed to `fit` is the caller's choice).
+        check_dataset(run_dir, config, dataset)
     _write_replacing(run_dir / DATASET_RECORD, json.dumps(record, indent=2))
     start = int(state.step)
     last_step = train.max_steps if stop_after is None else min(train.max_steps, stop_after)

@@ -257,11 +257,13 @@ DATASET_RECORD = "dataset.json"
 
 
 def dataset_fingerprint(dataset: Dataset) -> str:
-    """A content hash of a loaded scene: its name, bounds and every split's images and cameras
-    (sha256 over the float32 bytes), so that another folder holding other files is told apart."""
+    """A content hash of a loaded scene: its name, bounds and the training and test views'
+    images and cameras (sha256 over the float32 bytes), so that another folder holding other
+    files is told apart. The validation views are left out: how many are kept is a setting a
+    run may change (`data.max_val_views`)."""
     digest = hashlib.sha256()
     digest.update(f"{dataset.name} {dataset.near!r} {dataset.far!r}".encode())
-    for split in (dataset.train, dataset.test, dataset.val):
+    for split in (dataset.train, dataset.test):
         if split is None:
             digest.update(b"none")
             continue

@@ -248,3 +248,26 @@ def test_bounds_set_for_the_built_in_scene_are_refused_not_ignored(bounds):
     # They were ignored (the metrics were identical), while data.image_downscale was refused.
     with pytest.raises(DatasetError, match="apply to scenes on disk; the built-in scene samples between its own bounds"):
         load_dataset(DataConfig(**bounds))
+
+
+def test_a_resumed_run_refuses_a_scene_whose_files_changed(tmp_path):
+    import dataclasses
+
+    from _writers import random_pixels, write_png
+    from helpers import TINY_SHARED_OVERRIDES
+
+    from mixnerf_eqx import fit
+
+    write_blender(tmp_path / "nerf_synthetic" / "toy", num_train=5, num_test=9, height=8, width=8)
+    overrides = [o for o in TINY_SHARED_OVERRIDES if not o.startswith("data.")]
+    config = load_config(
+        "blender4_grid",
+        [*overrides, "grid.coarse_to_fine_steps=0", "data.scene=toy", f"data.data_dir={str(tmp_path)!r}", f"train.run_dir={str(tmp_path / 'run')!r}"],
+    )
+    config = dataclasses.replace(config, train=dataclasses.replace(config.train, max_steps=4, eval_every=0))
+    fit(config, progress=False, write_renders=False, stop_after=1)
+    # The same scene again resumes; a training image rewritten does not.
+    fit(config, progress=False, write_renders=False, stop_after=2)
+    write_png(tmp_path / "nerf_synthetic" / "toy" / "train" / "r_0.png", random_pixels(np.random.default_rng(9), 8, 8, 4))
+    with pytest.raises(ConfigError, match="holds other data"):
+        fit(config, progress=False, write_renders=False, stop_after=3)
