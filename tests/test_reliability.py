@@ -257,7 +257,7 @@ def test_a_run_records_its_scene_and_eval_refuses_other_data(tiny_config, tiny_s
     record = json.loads((run / "dataset.json").read_text())
     assert record == {"root": None, "scene": "builtin", "fingerprint": dataset_fingerprint(tiny_scene)}
     # The same run against other data: refused, naming both fingerprints.
-    other = make_builtin_scene(resolution=32, num_train_views=4, num_test_views=3, num_val_views=2)
+    other = make_builtin_scene(resolution=32, num_train_views=3, num_test_views=3)
     assert dataset_fingerprint(other) != record["fingerprint"]
     with pytest.raises(ConfigError, match="holds other data"):
         mx.runs.restore_run(run, dataset=other)
