@@ -46,10 +46,12 @@ def fit_quietly(config, dataset, **kwargs):
     return mx.fit(config, dataset=dataset, progress=False, write_renders=False, log_every=2, **kwargs)
 
 
-def _interrupting(function, calls: dict):
+def _interrupting(function, calls: dict, at: int = 1):
+    """`function`, raising a real Ctrl-C (SIGINT) in its `at`-th call, before it runs."""
+
     def interrupted(*args, **kwargs):
         calls["count"] += 1
-        if calls["count"] == 1:
+        if calls["count"] == at:
             signal.raise_signal(signal.SIGINT)  # a real Ctrl-C, in the middle of this call
         return function(*args, **kwargs)
 
@@ -218,14 +220,8 @@ def test_an_eval_interrupted_while_it_rewrites_its_folder_changes_nothing(tiny_c
     before = {p.name: p.read_bytes() for p in (run / "eval").iterdir()}
     assert "metrics.json" in before and any(name.endswith(".png") for name in before)
     original, calls = eval_command.write_view_renders, {"count": 0}
-
-    def interrupted(*args, **kwargs):
-        calls["count"] += 1
-        if calls["count"] == 2:
-            signal.raise_signal(signal.SIGINT)  # a real Ctrl-C after the first view's PNGs
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(eval_command, "write_view_renders", interrupted)
+    # A real Ctrl-C after the first view's PNGs.
+    monkeypatch.setattr(eval_command, "write_view_renders", _interrupting(original, calls, at=2))
     capsys.readouterr()
     assert eval_command.main([str(run), "--no-progress", "--no-lpips", "--max-views", "2"]) == 130
     assert "nothing was changed in the run" in capsys.readouterr().err
@@ -287,14 +283,8 @@ def test_ctrl_c_in_the_final_render_leaves_the_run_folder_as_it_was(tiny_config,
     config = _with(tiny_config, "train", max_steps=2)
     run_dir = Path(config.train.run_dir)
     original, calls = train_module.write_view_renders, {"count": 0}
-
-    def interrupted(*args, **kwargs):
-        calls["count"] += 1
-        if calls["count"] == 2:
-            signal.raise_signal(signal.SIGINT)  # a real Ctrl-C after the first view's PNGs
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(train_module, "write_view_renders", interrupted)
+    # A real Ctrl-C after the first view's PNGs.
+    monkeypatch.setattr(train_module, "write_view_renders", _interrupting(original, calls, at=2))
     with pytest.raises(KeyboardInterrupt):
         mx.fit(config, dataset=tiny_scene, progress=False, log_every=2)
     assert calls["count"] == 2
