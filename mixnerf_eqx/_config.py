@@ -197,7 +197,8 @@ class OccupancyConfig:
     # the field only at the samples in occupied cells (and, on the fine level, in front of the
     # point where the coarse transmittance falls below `train_stop_transmittance`), gathered
     # into a buffer per level whose size is the share of samples last found live, plus
-    # `train_headroom`, rounded up to eighths (a few sizes, each step compiled once).
+    # `train_headroom`, rounded up to a rung of 1, 0.71, 0.5, 0.35, ... (a few sizes, each step
+    # compiled once).
     train_skipping: bool = False
     train_stop_transmittance: float = 1e-4  # 0: finished rays are evaluated in training
     train_headroom: float = 0.1  # share of the samples added to the live share measured

@@ -16,7 +16,7 @@ import pytest
 from helpers import TINY_OVERRIDES
 
 from mixnerf_eqx._util import allocator as _allocator
-from mixnerf_eqx._util.allocator import allocator_library
+from mixnerf_eqx._util.allocator import allocator_in_use, allocator_library
 
 linux_only = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="LD_PRELOAD and /proc are Linux's"
@@ -76,9 +76,15 @@ def test_the_library_is_chosen_by_the_environment(monkeypatch, tmp_path):
     with pytest.raises(FileNotFoundError, match="MIXNERF_ALLOCATOR"):
         allocator_library()
     other = tmp_path / "libother.so"
-    other.write_bytes(b"")
+    other.write_bytes(b"\x7fELF" + bytes(60))  # an ELF header: taken as a library
     monkeypatch.setenv("MIXNERF_ALLOCATOR", str(other))
     assert allocator_library() == other.resolve()
+    text = tmp_path / "notes.txt"
+    text.write_text("not a library")
+    monkeypatch.setenv("MIXNERF_ALLOCATOR", str(text))
+    with pytest.raises(FileNotFoundError, match="is not a shared library"):
+        allocator_library()
+    assert allocator_in_use() == "system"
     monkeypatch.delenv("MIXNERF_ALLOCATOR")
     default = allocator_library()
     if sys.platform.startswith("linux"):

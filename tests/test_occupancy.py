@@ -160,6 +160,24 @@ def test_updates_keep_the_decayed_maximum():
     np.testing.assert_allclose(np.asarray(replaced.density), 1.0)
 
 
+def test_every_evaluated_cell_decays_at_each_update_visited_or_not():
+    # A quarter of the cells visited per update; the rest still decay, so that density the
+    # field has lost leaves the grid within a few updates (not only when a cell is revisited).
+    ball = SphereField(centre=jnp.zeros(3), inside=jnp.asarray(8.0), radius=100.0)
+    grid = refresh_occupancy(empty_grid((-1.0,) * 3, (1.0,) * 3, resolution=4), ball, key=jax.random.key(0))
+    empty = eqx.tree_at(lambda f: f.inside, ball, jnp.asarray(0.0))
+    expected = np.full(64, 8.0)
+    for update in range(3):
+        grid = update_occupancy(grid, empty, key=jax.random.key(update + 1), decay=0.5, fraction=0.25, offset=update)
+        expected = 0.5 * expected
+        expected[update::4] = np.maximum(expected[update::4], 0.0)
+        np.testing.assert_allclose(np.asarray(grid.density).reshape(-1), expected)
+    assert float(np.max(np.asarray(grid.density))) == 1.0  # 8 halved three times
+    # Cells never evaluated stay unevaluated (inf), however many updates pass.
+    fresh = update_occupancy(empty_grid((-1.0,) * 3, (1.0,) * 3, resolution=4), empty, key=jax.random.key(9), decay=0.5, fraction=0.25)
+    assert int(np.isinf(np.asarray(fresh.density)).sum()) == 48
+
+
 def test_frustum_box_holds_every_sample_and_ndc_depth_spans_minus_one_to_one():
     rng = np.random.default_rng(1)
     poses = np.concatenate([np.eye(3)[None].repeat(3, 0), rng.normal(0, 0.2, (3, 3, 1))], axis=-1)

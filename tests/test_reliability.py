@@ -550,3 +550,17 @@ def test_interrupts_outside_the_main_thread_are_left_alone():
     thread.start()
     thread.join()
     assert result["handler"] is before and signal.getsignal(signal.SIGINT) is before
+
+
+def test_a_downscale_that_leaves_images_too_small_to_score_is_refused_before_training(tmp_path):
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data"
+    if not (shared / "nerf_llff_data" / "fern").is_dir():
+        pytest.skip("the shared fern scene is not beside the repository")
+    config = mx.load_config(
+        "llff3_grid",
+        [f'data.data_dir="{shared}"', "data.image_downscale=16", f'train.run_dir="{tmp_path / "run"}"'],
+    )
+    # fern's 504x378 images divided by 16: 31x23, below the 32 pixels LPIPS and SSIM need.
+    with pytest.raises(ConfigError, match=r"data.image_downscale = 16 leaves 31x23 held-out images"):
+        mx.fit(config, progress=False)
+    assert not (tmp_path / "run").exists()  # refused before anything was written

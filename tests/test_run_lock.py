@@ -58,6 +58,44 @@ def test_a_second_holder_in_the_same_process_is_refused_and_the_lock_is_free_aft
         pass
 
 
+def test_a_failed_block_leaves_no_lock_where_there_was_none(tmp_path):
+    # A user's folder that was not a run folder: a refused or failed run leaves no .lock.
+    with pytest.raises(RuntimeError, match="boom"), hold_folder(tmp_path):
+        assert (tmp_path / LOCK_NAME).exists()
+        raise RuntimeError("boom")
+    assert not (tmp_path / LOCK_NAME).exists()
+    # A run that ends normally keeps its lock file (emptied), and a later failure keeps it too.
+    with hold_folder(tmp_path):
+        pass
+    assert (tmp_path / LOCK_NAME).read_text() == ""
+    with pytest.raises(RuntimeError), hold_folder(tmp_path):
+        raise RuntimeError("boom")
+    assert (tmp_path / LOCK_NAME).exists()
+
+
+def test_a_lock_file_removed_by_its_holder_is_not_taken(tmp_path, monkeypatch):
+    # The file this process opened was removed (by a failing holder) before it locked it: the
+    # lock is taken on the file the path names now, never on the orphan.
+    import mixnerf_eqx._util.lock as lock
+
+    opened = []
+    real_open = open
+
+    def opening(path, mode="r", *args, **kwargs):
+        handle = real_open(path, mode, *args, **kwargs)
+        if Path(path).name == LOCK_NAME and not opened:
+            opened.append(handle)
+            os.unlink(path)  # as a failing holder would, between our open and our flock
+        return handle
+
+    monkeypatch.setattr(lock, "open", opening, raising=False)
+    with hold_folder(tmp_path):
+        locked = os.stat(tmp_path / LOCK_NAME).st_ino
+        assert opened and opened[0].closed  # the orphan was let go
+        assert f"pid {os.getpid()}" in (tmp_path / LOCK_NAME).read_text()
+    assert locked == os.stat(tmp_path / LOCK_NAME).st_ino
+
+
 def test_a_train_started_mid_run_fails_and_the_lock_dies_with_its_holder(tmp_path):
     run_dir = tmp_path / "run"
     first = subprocess.Popen(

@@ -329,3 +329,22 @@ def _tiny_overrides():
     from helpers import TINY_OVERRIDES
 
     return TINY_OVERRIDES
+
+
+def test_resuming_with_another_config_names_the_runs_config_and_counts_the_rest(tmp_path):
+    from mixnerf_eqx._config import config_to_dict
+    from mixnerf_eqx._train.run_folder import check_resumable
+
+    checkpoint = tmp_path / "run" / "checkpoints" / "step_00000100"
+    stored = config_to_dict(mx.load_config("builtin_grid"))
+    with pytest.raises(ConfigError) as caught:
+        check_resumable(checkpoint, stored, mx.load_config("builtin"))
+    message = str(caught.value)
+    assert "the run was made with the config named 'builtin_grid' (--config builtin_grid)" in message
+    assert str(tmp_path / "run" / "config.json") in message
+    assert message.count(" -> ") == 6 and "more" in message  # six named, the rest counted
+    # One setting changed under the same config: named, and no hint about the config.
+    same = mx.load_config("builtin_grid", ["loss.lambda_depth=0.5"])
+    with pytest.raises(ConfigError, match=r"\(loss.lambda_depth: .* -> 0.5\); choose another") as caught:
+        check_resumable(checkpoint, stored, same)
+    assert "config named" not in str(caught.value)

@@ -15,7 +15,8 @@ from helpers import TINY_SHARED_OVERRIDES
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError
 from mixnerf_eqx._nn.budget import AbstractOccupancy, SampleBudget, budget_capacity, transmittance_before
-from mixnerf_eqx._train.state import budget_bucket, make_train_step
+from mixnerf_eqx._train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from mixnerf_eqx._train.state import budget_bucket, make_train_step, training_cells
 from mixnerf_eqx.data import load_dataset
 
 
@@ -113,8 +114,17 @@ def test_finished_rays_stop_on_the_fine_level(grid_setup):
 
 
 def test_buckets_and_capacities():
-    assert budget_bucket(0.3, 0.1) == 0.5  # 0.4 rounded up to eighths
+    rung = 2.0**-0.5
+    assert budget_bucket(0.3, 0.1) == 0.5  # 0.4: the rung above is 1/2
     assert budget_bucket(0.25, 0.0) == 0.25 and budget_bucket(0.95, 0.1) == 1.0
+    assert budget_bucket(0.65, 0.1) == 1.0 and budget_bucket(0.5, 0.1) == rung
+    assert budget_bucket(1e-6, 0.0) == 2.0**-7  # the bottom rung
+    # Hysteresis: a smaller rung is taken at once; a larger one only when the current rung
+    # leaves less than half the headroom.
+    assert budget_bucket(0.2, 0.1, current=rung) == 2.0**-1.5  # 0.3: the rung above is 0.35
+    assert budget_bucket(0.42, 0.1, current=0.5) == 0.5  # 0.52 wanted; 0.47 <= 0.5 kept
+    assert budget_bucket(0.46, 0.1, current=0.5) == rung  # 0.51 > 0.5: grows
+    assert budget_bucket(0.8, 0.1, current=0.5) == 1.0  # live beyond the buffer: grows
     assert budget_capacity(0.5, 10, 3) == 15 and budget_capacity(0.01, 10, 3) == 1
     with pytest.raises(ValueError, match="coarse_fraction must lie in"):
         SampleBudget(coarse_fraction=0.0)
@@ -129,12 +139,14 @@ def test_a_skipping_step_with_nothing_to_skip_equals_the_dense_step(grid_setup):
     state = eqx.tree_at(lambda s: s.grid, state, grid)
     occupancy = dataclasses.replace(config.occupancy, train_skipping=True, train_stop_transmittance=0.0)
     skipping = dataclasses.replace(config, occupancy=occupancy)
+    state = training_cells(state, occupancy)
+    assert state.cells is not None
     dense_state, dense_metrics = make_train_step(config)(state, batch)
     skip_step = make_train_step(skipping, max_traces=1)
     skip_state, skip_metrics = skip_step(state, batch)
     # The loss is bit-identical; the updated parameters agree to float32 rounding (XLA compiles
-    # the step with its two branches as another program, and the grid's scatter-add gradient
-    # may sum in another order: 1 ulp on about 0.1% of the entries).
+    # the masked step as another program, and the grid's scatter-add gradient may sum in
+    # another order: 1 ulp on about 0.1% of the entries).
     assert float(dense_metrics.terms.total) == float(skip_metrics.terms.total)
     for x, y in zip(
         jax.tree_util.tree_leaves(eqx.filter(dense_state.model, eqx.is_array)),
@@ -151,12 +163,32 @@ def test_a_skipping_step_with_nothing_to_skip_equals_the_dense_step(grid_setup):
 
 def test_before_the_grid_has_looked_everywhere_steps_are_dense(grid_setup):
     config, _, state, batch = grid_setup
-    assert not bool(state.grid.fully_evaluated())  # a new grid: every cell unevaluated
     occupancy = dataclasses.replace(config.occupancy, train_skipping=True)
+    assert not bool(state.grid.fully_evaluated())  # a new grid: every cell unevaluated
+    assert training_cells(state, occupancy).cells is None  # so no cells to skip
     step = make_train_step(dataclasses.replace(config, occupancy=occupancy), budget=(0.125, 0.125))
     _, metrics = step(state, batch)
-    evaluations, coarse, fine, dropped, coarse_dense, fine_dense = np.asarray(metrics.terms.samples)
-    assert evaluations == coarse_dense + fine_dense and dropped == 0
+    assert metrics.terms.samples is None  # the dense render
+    # One cell still unevaluated is enough to keep the steps dense.
+    almost = eqx.tree_at(lambda g: g.density, state.grid, jnp.zeros_like(state.grid.density).at[0, 0, 0].set(jnp.inf))
+    assert training_cells(dataclasses.replace(state, grid=almost), occupancy).cells is None
+    complete = eqx.tree_at(lambda g: g.density, state.grid, jnp.zeros_like(state.grid.density))
+    assert training_cells(dataclasses.replace(state, grid=complete), occupancy).cells is not None
+
+
+def test_checkpoints_leave_the_cells_out_and_resuming_recomputes_them(grid_setup, tmp_path):
+    config, _, state, _ = grid_setup
+    occupancy = dataclasses.replace(config.occupancy, train_skipping=True)
+    grid = eqx.tree_at(lambda g: g.density, state.grid, jnp.zeros_like(state.grid.density).at[1, 2, 3].set(5.0))
+    state = training_cells(dataclasses.replace(state, grid=grid), occupancy)
+    save_checkpoint(tmp_path, state, config={})
+    like = dataclasses.replace(state, cells=None)
+    loaded = load_checkpoint(latest_checkpoint(tmp_path), like)
+    assert loaded.cells is None
+    again = training_cells(loaded, occupancy)
+    np.testing.assert_array_equal(np.asarray(again.cells.mask), np.asarray(state.cells.mask))
+    # The mask is the grid's dilated one: the cell and its 26 neighbours.
+    assert int(np.asarray(again.cells.mask).sum()) == 27
 
 
 def test_training_skipping_needs_the_grid():

@@ -360,6 +360,23 @@ def test_train_with_the_viewer_serves_while_it_trains_and_stops_after(tmp_path, 
     assert not [thread for thread in threading.enumerate() if thread.name.startswith("viewer-")]
 
 
+def test_train_with_the_viewer_on_a_busy_folder_is_refused_before_any_server_starts(tmp_path, capsys):
+    from helpers import TINY_OVERRIDES
+
+    from mixnerf_eqx._util.lock import hold_folder
+    from mixnerf_eqx.cli import train as train_cli
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    arguments = ["--config", "builtin", "--run-dir", str(run_dir), "--no-progress", *TINY_OVERRIDES]
+    with hold_folder(run_dir):
+        assert train_cli.main([*arguments, "--viewer", "--viewer-port", "0"]) == 2
+    captured = capsys.readouterr()
+    assert "in use by another run" in captured.err
+    assert "viewer:" not in captured.out  # no URL printed for a server that never served
+    assert not [thread for thread in threading.enumerate() if thread.name.startswith("viewer-")]
+
+
 def test_a_camera_turned_away_from_a_forward_facing_scene_shows_nothing(tiny_config, tiny_scene):
     """NDC maps a ray heading away from the scene to a mirrored point on the near plane: those
     pixels are left black instead of showing a mirrored picture. Turned half way, the pixels

@@ -172,9 +172,11 @@ def update_occupancy(
 
     The cells `offset, offset + stride, offset + 2 stride, ...` with `stride = round(1 /
     fraction)` are evaluated, so that calling with `offset = 0, 1, ..., stride - 1` visits
-    every cell once. A visited cell keeps `max(decay * old, new)` (`new` alone where it was
-    never evaluated); the density is the field's noise-free density of a Gaussian with the
-    variance of a uniform distribution over the cell. `decay = 0` replaces the old values.
+    every cell once. Every evaluated cell decays (`decay * old`) at each update, visited or
+    not, as instant-ngp's grid does, so that density the field has lost leaves the grid within
+    a few updates; a visited cell keeps `max(decay * old, new)` (`new` alone where it was never
+    evaluated). The density is the field's noise-free density of a Gaussian with the variance
+    of a uniform distribution over the cell. `decay = 0` replaces the old values.
 
     **Arguments:**
 
@@ -198,8 +200,9 @@ def update_occupancy(
     covs = jnp.broadcast_to(cell_size**2 / 12, (count, 3))
     new = jax.lax.map(lambda pc: field.density(pc[0], pc[1]), (points, covs), batch_size=batch_size)
     flat = grid.density.reshape(-1)
+    flat = jnp.where(jnp.isinf(flat), flat, decay * flat)
     old = flat[cell_ids]
-    kept = jnp.where(jnp.isinf(old), new, jnp.maximum(decay * old, new))
+    kept = jnp.where(jnp.isinf(old), new, jnp.maximum(old, new))
     density = flat.at[cell_ids].set(kept).reshape(grid.density.shape)
     return eqx.tree_at(lambda g: g.density, grid, density)
 

@@ -1,5 +1,6 @@
 """Atomic, resumable checkpoints of a `TrainState`, with the run's config."""
 
+import dataclasses
 import json
 import os
 import shutil
@@ -49,7 +50,9 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
 
 
 def _storable(state: TrainState) -> TrainState:
-    # Typed keys are not serialisable; their raw data is.
+    # Typed keys are not serialisable; their raw data is. The skipping cells are derived from
+    # the grid (`training_cells`), so they are not stored.
+    state = dataclasses.replace(state, cells=None)
     return eqx.tree_at(lambda s: s.key, state, jax.random.key_data(state.key))
 
 

@@ -59,6 +59,7 @@ from .state import (
     init_train_state,
     make_train_step,
     occupancy_key,
+    training_cells,
     training_rays,
     update_grid,
 )
@@ -109,21 +110,25 @@ class _Steps:
 
     def __init__(self, config: Config, wrap: Callable[[Any], Any]):
         self.config, self.wrap = config, wrap
-        self.steps: dict[tuple[float, float] | None, Any] = {}
+        self.steps: dict[tuple[Any, Any], Any] = {}
         self.budget: tuple[float, float] | None = (1.0, 1.0)
         self.fallback: str | None = None
 
     def __call__(self, state: TrainState, batch: Any) -> tuple[TrainState, StepMetrics]:
-        step = self.steps.get(self.budget)
+        # Dense steps until the grid has looked at every cell (`state.cells` set), and after a fallback.
+        # (The dense step compiles once with `cells` unset and, after a fallback, once with it set.)
+        bucket = self.budget if state.cells is not None else None
+        key = bucket if bucket is not None else ("dense", state.cells is None)
+        step = self.steps.get(key)
         if step is None:
-            if self.budget is None:  # the dense step, after a fallback
+            if bucket is None:
                 dense = dataclasses.replace(
                     self.config, occupancy=dataclasses.replace(self.config.occupancy, train_skipping=False)
                 )
                 step = self.wrap(make_train_step(dense, max_traces=1))
             else:
                 step = self.wrap(make_train_step(self.config, max_traces=1, budget=self.budget))
-            self.steps[self.budget] = step
+            self.steps[key] = step
         return step(state, batch)
 
     def measure(self, done: int, metrics: StepMetrics) -> str | None:
@@ -141,9 +146,10 @@ class _Steps:
                 "occupancy.box_radius (does the box hold the scene?) and occupancy.density_threshold."
             )
             return self.fallback
+        current = self.budget
         self.budget = (
-            budget_bucket(coarse / coarse_dense, occupancy.train_headroom),
-            budget_bucket(fine / fine_dense, occupancy.train_headroom),
+            budget_bucket(coarse / coarse_dense, occupancy.train_headroom, current[0]),
+            budget_bucket(fine / fine_dense, occupancy.train_headroom, current[1]),
         )
         return None
 
@@ -288,6 +294,28 @@ def _prepare_run_dir(run_dir: Path) -> bool:
     return not existed
 
 
+# The held-out metrics need 32 pixels a side (LPIPS's network 31, SSIM an 11-pixel window);
+# `data.resolution` is held to it by the config, scenes on disk here, before any training.
+MIN_SCORED_SIZE = 32
+
+
+def _check_scored_size(config: Config, dataset: Dataset) -> None:
+    """Refuses a scene whose held-out images are too small to score, before training."""
+    height, width = dataset.test.images.shape[1:3]
+    if min(height, width) >= MIN_SCORED_SIZE:
+        return
+    factor = config.data.image_downscale
+    fix = (
+        f"data.image_downscale = {factor} leaves {width}x{height} held-out images; choose a factor "
+        f"that leaves at least {MIN_SCORED_SIZE} pixels a side"
+        if factor > 1
+        else f"the held-out images are {width}x{height}"
+    )
+    raise ConfigError(
+        f"{fix}: the held-out metrics (LPIPS, SSIM) need images of {MIN_SCORED_SIZE} pixels a side or more"
+    )
+
+
 def _remove_if_unused(run_dir: Path) -> None:
     """Removes a run folder that this process created and wrote nothing into but its lock."""
     if run_dir.is_dir() and {p.name for p in run_dir.iterdir()} <= {LOCK_NAME}:
@@ -318,7 +346,7 @@ def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) 
         raise CheckpointError(
             f"no checkpoint in {run_dir / 'checkpoints'} can be read; move the folder away to start again"
         )
-    state = found[0]
+    state = training_cells(found[0], config.occupancy)
     if chosen is not config:
         print(
             f"continuing past the {chosen.optim.decay_steps} steps the run began with: the learning "
@@ -463,6 +491,8 @@ def _fit_holding(
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=absolute))
     loaded_here = dataset is None
     dataset = load_dataset(config.data) if dataset is None else dataset
+    if loaded_here:
+        _check_scored_size(config, dataset)
     config, state = _start_state(config, dataset, run_dir, resume)
     config_dict = config_to_dict(config)
     (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))

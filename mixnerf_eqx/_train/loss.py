@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Float
 
 from .._config import LossConfig, register_loss_weight, unregister_loss_weight
 from .._custom_types import PRNGKey
@@ -425,36 +425,24 @@ def loss_terms(
 
 
 def _render(
-    model: MixNeRF, rays: RayBundle, key: PRNGKey, budget: SampleBudget | None, ready: Bool[Array, ""] | None
+    model: MixNeRF, rays: RayBundle, key: PRNGKey, budget: SampleBudget | None
 ) -> tuple[RenderOutputs, Float[Array, "6"] | None]:
-    """The training render: dense, or within `budget` once `ready` (the occupancy grid has
-    looked at every cell); with a budget, also `LossTerms.samples`."""
+    """The training render: dense, or within `budget`; with a budget, also `LossTerms.samples`."""
     if budget is None:
         return model(rays, key=key), None
     num_rays = rays.batch_shape[0]
-    coarse = float(num_rays * model.coarse_sampler.num_samples)
-    fine = float(num_rays * model.fine_sampler.num_samples)
-
-    def dense():
-        return model(rays, key=key), jnp.asarray([coarse + fine, coarse, fine, 0.0, coarse, fine])
-
-    def within():
-        outputs, report = model.render_within(rays, budget, key=key)
-        counts = jnp.stack(
-            [
-                jnp.asarray(float(report.evaluations)),
-                report.coarse_live.astype(float),
-                report.fine_live.astype(float),
-                report.dropped.astype(float),
-                jnp.asarray(coarse),
-                jnp.asarray(fine),
-            ]
-        )
-        return outputs, counts
-
-    if ready is None:
-        return within()
-    return jax.lax.cond(ready, within, dense)
+    outputs, report = model.render_within(rays, budget, key=key)
+    counts = jnp.stack(
+        [
+            jnp.asarray(float(report.evaluations)),
+            report.coarse_live.astype(float),
+            report.fine_live.astype(float),
+            report.dropped.astype(float),
+            jnp.asarray(float(num_rays * model.coarse_sampler.num_samples)),
+            jnp.asarray(float(num_rays * model.fine_sampler.num_samples)),
+        ]
+    )
+    return outputs, counts
 
 
 def loss_fn(
@@ -467,20 +455,18 @@ def loss_fn(
     key: PRNGKey,
     patches: RayBundle | None = None,
     budget: SampleBudget | None = None,
-    budget_ready: Bool[Array, ""] | None = None,
 ) -> tuple[Float[Array, ""], LossTerms]:
     """Renders `rays` (and the unseen-view `patches`, in the same pass, where a patch term is
     weighted) in training mode and returns `(total loss, terms)`. With a `budget`, the render
-    evaluates only the live samples that fit it (`MixNeRF.render_within`), from the step where
-    `budget_ready` is true (densely before; always, without `budget_ready`)."""
+    evaluates only the live samples that fit it (`MixNeRF.render_within`)."""
     if patches is None or not weights.needs_patches:
-        rendered, counts = _render(model, rays, key, budget, budget_ready)
+        rendered, counts = _render(model, rays, key, budget)
         terms = loss_terms(rendered, model, rays, target_rgb, lambda_colour, weights)
         terms = dataclasses.replace(terms, samples=counts)
         return terms.total, terms
     count = rays.batch_shape[0]
     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), rays, patches)
-    rendered, counts = _render(model, both, key, budget, budget_ready)
+    rendered, counts = _render(model, both, key, budget)
     outputs = jax.tree_util.tree_map(lambda leaf: leaf[:count], rendered)
     patch_outputs = jax.tree_util.tree_map(lambda leaf: leaf[count:], rendered)
     terms = loss_terms(

@@ -14,7 +14,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from .._config import Config, ConfigError, OccupancyConfig, config_from_dict, config_to_dict
+from .._config import Config, ConfigError, OccupancyConfig, config_from_dict, config_names, config_to_dict
 from .._custom_types import PRNGKey
 from .._inference.evaluation import Rendered
 from .._inference.occupancy import OccupancyGrid, refresh_occupancy
@@ -218,6 +218,9 @@ def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> 
     return changed
 
 
+_SHOWN_CHANGES = 6  # differing settings named in the message; the rest are counted
+
+
 def check_resumable(
     checkpoint: Path,
     stored: dict[str, Any],
@@ -246,9 +249,20 @@ def check_resumable(
             f"schedule, or {remedy}"
         )
     if changed:
-        raise ConfigError(
-            f"{checkpoint} was written with different settings ({', '.join(changed)}); {remedy}"
-        )
+        shown = ", ".join(changed[:_SHOWN_CHANGES])
+        if len(changed) > _SHOWN_CHANGES:
+            shown += f", and {len(changed) - _SHOWN_CHANGES} more"
+        hint = ""
+        name = stored.get("name")
+        if name and name != config.name:
+            # Many settings differ at once when the run is resumed without its config.
+            packaged = name in config_names()
+            hint = (
+                f"; the run was made with the config named {name!r}"
+                + (f" (--config {name})" if packaged else "")
+                + f", its settings in {checkpoint.parent.parent / 'config.json'}: resume with it, or"
+            )
+        raise ConfigError(f"{checkpoint} was written with different settings ({shown}){hint}; {remedy}")
 
 
 # --- What a run was trained against ------------------------------------------------------------

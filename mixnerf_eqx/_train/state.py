@@ -7,6 +7,7 @@ notebook and the benchmarks all start from these two, as MultiNeRF's train, eval
 scripts share one `setup_model`.
 """
 
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import Any
@@ -21,8 +22,9 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from .._config import Config, LossConfig, OccupancyConfig, OptimConfig, schedule_steps
 from .._custom_types import PoseStack, PRNGKey
 from .._inference.camera_path import orbit_path, spiral_path
-from .._inference.occupancy import OccupancyGrid, empty_grid, frustum_box, update_occupancy
+from .._inference.occupancy import OccupancyGrid, OccupiedCells, empty_grid, frustum_box, update_occupancy
 from .._nn.budget import SampleBudget
+from .._nn.field import AbstractField
 from .._nn.model import MixNeRF, build_model
 from .._nn.rays import Box, RayBundle, radius_box
 from ..data import Dataset, rays_at_poses, rays_for_views
@@ -89,6 +91,10 @@ class TrainState(eqx.Module):
     - `grid`: the occupancy grid kept during training, or `None`.
     - `optimizer` (static): the gradient transformation.
     - `learning_rate` (static): the learning rate by step number (from 1).
+    - `cells`: with `occupancy.train_skipping`, the grid's occupied cells as the steps skip
+      them (its dilated mask, computed at each grid update rather than in every step), once
+      the grid has looked at every cell; `None` before (the steps are dense) and without
+      skipping. Not stored in checkpoints: `training_cells` recomputes it from the grid.
     """
 
     model: MixNeRF
@@ -98,6 +104,7 @@ class TrainState(eqx.Module):
     grid: OccupancyGrid | None
     optimizer: optax.GradientTransformation = eqx.field(static=True)
     learning_rate: optax.Schedule = eqx.field(static=True)
+    cells: OccupiedCells | None = None
 
 
 def init_key(config: Config) -> PRNGKey:
@@ -274,10 +281,21 @@ def _all_finite(tree: Any) -> Bool[Array, ""]:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
-def budget_bucket(live_share: float, headroom: float) -> float:
-    """The buffer share for a level whose live share was `live_share`: plus `headroom`,
-    rounded up to eighths, at most 1."""
-    return min(1.0, math.ceil(8 * (live_share + headroom) - 1e-9) / 8)
+# Buffer shares are rungs of a ladder, each 1/sqrt(2) of the one above (1, 0.71, 0.5, 0.35,
+# 0.25, ...): a step compiles once per rung pair (seconds on a CPU), so the rungs are few and
+# far apart; a share between two rungs costs at most sqrt(2) times its evaluations.
+BUDGET_RUNGS = tuple(2.0 ** (-k / 2) for k in range(15))
+
+
+def budget_bucket(live_share: float, headroom: float, current: float | None = None) -> float:
+    """The buffer share for a level whose live share was `live_share`: the smallest rung of
+    `BUDGET_RUNGS` that holds `live_share + headroom`. With the `current` share, a larger rung
+    is taken only when the current one leaves less than half the headroom, so that a share
+    near a rung does not switch (and compile) back and forth."""
+    wanted = min(rung for rung in BUDGET_RUNGS if rung >= min(1.0, live_share + headroom) - 1e-9)
+    if current is not None and wanted > current and live_share + headroom / 2 <= current:
+        return current
+    return wanted
 
 
 def make_train_step(
@@ -292,8 +310,9 @@ def make_train_step(
     `max_traces`, tracing more often than that raises (a guard against recompiles).
 
     With `occupancy.train_skipping`, the step evaluates the field within buffers of `budget`
-    = (coarse, fine) shares of the samples (`budget_bucket`), from the step where the
-    occupancy grid has looked at every cell (densely before).
+    = (coarse, fine) shares of the samples (`budget_bucket`) where `state.cells` is set (the
+    occupancy grid has looked at every cell: `training_cells`), and densely where it is
+    `None`; the two compile apart (the state's structure differs).
     """
     weights = LossWeights.from_config(config.loss, config.method)
     loss_cfg, train_cfg, occupancy = config.loss, config.train, config.occupancy
@@ -323,16 +342,16 @@ def make_train_step(
             patches = anneal_sample_space(
                 patches, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
             )
-        sample_budget = ready = None
-        if skips and state.grid is not None:
-            # The grid only skips space it has looked at: dense steps until every cell is evaluated.
+        sample_budget = None
+        if skips and state.cells is not None:
+            # The grid only skips space it has looked at: `cells` is None (dense steps) until
+            # every cell is evaluated (`training_cells`).
             sample_budget = SampleBudget(
-                occupancy=state.grid.cells(),
+                occupancy=state.cells,
                 coarse_fraction=budget[0],
                 fine_fraction=budget[1],
                 stop_transmittance=occupancy.train_stop_transmittance,
             )
-            ready = state.grid.fully_evaluated()
         (_, terms), grads = eqx.filter_value_and_grad(scheduled_loss, has_aux=True)(
             state.model,
             rays,
@@ -342,7 +361,6 @@ def make_train_step(
             key=_step_keys(state)[1],
             patches=patches,
             budget=sample_budget,
-            budget_ready=ready,
         )
         params = eqx.filter(state.model, eqx.is_array)
         updates, new_opt_state = state.optimizer.update(grads, state.opt_state, params)
@@ -374,21 +392,44 @@ def occupancy_key(key: PRNGKey, step: Int[Array, ""] | int) -> PRNGKey:
     return jax.random.fold_in(jax.random.fold_in(key, 0x0CC), step)
 
 
-@eqx.filter_jit
 def update_grid(state: TrainState, occupancy: OccupancyConfig) -> TrainState:
-    """`state` with `occupancy.update_fraction` of its grid's cells re-evaluated.
+    """`state` with `occupancy.update_fraction` of its grid's cells re-evaluated (and, with
+    `occupancy.train_skipping`, its `cells` recomputed: `training_cells`).
 
     Meant for every `occupancy.update_every`-th step; the cells visited rotate with the
     step, so every cell is visited once in `1 / update_fraction` updates.
     """
     if state.grid is None:
         return state
-    grid = update_occupancy(
-        state.grid,
-        state.model.field,
-        key=occupancy_key(state.key, state.step),
+    grid = _updated_grid(state.grid, state.model.field, state.key, state.step, occupancy)
+    return training_cells(eqx.tree_at(lambda s: s.grid, state, grid), occupancy)
+
+
+@eqx.filter_jit
+def _updated_grid(
+    grid: OccupancyGrid, field: AbstractField, key: PRNGKey, step: Int[Array, ""], occupancy: OccupancyConfig
+) -> OccupancyGrid:
+    return update_occupancy(
+        grid,
+        field,
+        key=occupancy_key(key, step),
         decay=occupancy.decay,
         fraction=occupancy.update_fraction,
-        offset=state.step // occupancy.update_every,
+        offset=step // occupancy.update_every,
     )
-    return eqx.tree_at(lambda s: s.grid, state, grid)
+
+
+@eqx.filter_jit
+def _cells_if_complete(grid: OccupancyGrid) -> tuple[OccupiedCells, Bool[Array, ""]]:
+    return grid.cells(), grid.fully_evaluated()
+
+
+def training_cells(state: TrainState, occupancy: OccupancyConfig) -> TrainState:
+    """`state` with `cells` set from its grid (with `occupancy.train_skipping`, once the grid
+    has looked at every cell; `None` otherwise). Called after every grid update and on resume;
+    the steps read the dilated mask from here instead of computing it each step."""
+    cells = None
+    if occupancy.enabled and occupancy.train_skipping and state.grid is not None:
+        found, complete = _cells_if_complete(state.grid)
+        cells = found if bool(complete) else None
+    return dataclasses.replace(state, cells=cells)

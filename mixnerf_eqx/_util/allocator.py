@@ -60,6 +60,12 @@ def allocator_library() -> Path | None:
             raise FileNotFoundError(
                 f"{ALLOCATOR_ENV}={choice!r} is not a file (give a shared library, or 'system')"
             )
+        if not _is_elf(path):
+            # The dynamic loader would only say "cannot be preloaded" and go on without it.
+            raise FileNotFoundError(
+                f"{ALLOCATOR_ENV}={choice!r} is not a shared library (no ELF header; give a .so "
+                "file such as libmimalloc.so, or 'system')"
+            )
         return path.resolve()
     if not sys.platform.startswith("linux"):
         return None
@@ -75,6 +81,15 @@ def allocator_library() -> Path | None:
             if path.is_file():
                 return path.resolve()
     return None
+
+
+def _is_elf(path: Path) -> bool:
+    """Whether `path` starts as an ELF file does (a shared library on Linux)."""
+    try:
+        with open(path, "rb") as handle:
+            return handle.read(4) == b"\x7fELF"
+    except OSError:
+        return False
 
 
 def _is_loaded(library: Path) -> bool:

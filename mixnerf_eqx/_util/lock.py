@@ -61,28 +61,56 @@ def hold_folder(folder: str | Path, what: str = "run", option: str = "train.run_
         )
         yield path
         return
-    handle = open(path, "a+")  # noqa: SIM115 - held open for the block
+    created = not path.exists()
+    handle = _locked(path, folder, what, option)
     try:
-        try:
-            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise FolderBusyError(
-                f"{folder} is in use by another {what} ({_holder(handle)}). Wait for it to end, stop "
-                f"it, or choose another {option}."
-            ) from None
         started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
         handle.seek(0)
         handle.truncate()
         handle.write(f"pid {os.getpid()} on {socket.gethostname()}, since {started}\n")
         handle.flush()
+        failed = False
         try:
             yield path
+        except BaseException:
+            failed = True
+            raise
         finally:
-            # Emptied, not removed: removing it would let a third process lock a new file
-            # while a second one waits on the old one.
             handle.seek(0)
             handle.truncate()
             handle.flush()
+            if failed and created:
+                # A block that failed in a folder with no lock before leaves none behind (a
+                # user's folder keeps no trace of a refused run). Removed while still held: a
+                # process that opened this file meanwhile sees on locking that the path has
+                # gone (`_locked`) and starts again on a new file.
+                with contextlib.suppress(OSError):
+                    path.unlink()
+            # Otherwise emptied, not removed (the file of a run folder stays its lock).
             fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
     finally:
         handle.close()
+
+
+def _locked(path: Path, folder: Path, what: str, option: str):
+    """`path` opened and exclusively locked; the lock taken on the file the path names now
+    (a file removed by its holder while this process waited is let go, and the new one tried)."""
+    for _ in range(100):
+        handle = open(path, "a+")  # noqa: SIM115 - held open by the caller
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(handle)
+            handle.close()
+            raise FolderBusyError(
+                f"{folder} is in use by another {what} ({holder}). Wait for it to end, stop "
+                f"it, or choose another {option}."
+            ) from None
+        try:
+            current = os.stat(path).st_ino
+        except FileNotFoundError:
+            current = None
+        if current == os.fstat(handle.fileno()).st_ino:
+            return handle
+        handle.close()  # the holder removed the file we locked: lock the one there now
+    raise FolderBusyError(f"{folder}: its lock file keeps changing; choose another {option}.")

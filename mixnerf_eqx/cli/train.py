@@ -87,26 +87,32 @@ def _fit_with_viewer(config, args: argparse.Namespace):
     check_viewer_installed()
     check_host(args.viewer_host, "--viewer-host")
     dataset = load_dataset(config.data)
-    viewer = Viewer(
-        None,
-        dataset,
-        host=args.viewer_host,
-        port=args.viewer_port,
-        max_width=args.viewer_max_width,
-        training=True,
-        mixture=config.method == "mixnerf",
-    )
-    where = serving_line(viewer, args.viewer_port)
-    print(f"viewer: {where}  (the run's current parameters; pause training from the panel)", flush=True)
+    viewer = None
 
     def show(state) -> None:
+        nonlocal viewer
+        if viewer is None:
+            # Started at the first call, once `fit` holds the run folder: a run refused
+            # (a busy folder, a config that cannot resume) starts no server.
+            viewer = Viewer(
+                None,
+                dataset,
+                host=args.viewer_host,
+                port=args.viewer_port,
+                max_width=args.viewer_max_width,
+                training=True,
+                mixture=config.method == "mixnerf",
+            )
+            where = serving_line(viewer, args.viewer_port)
+            print(f"viewer: {where}  (the run's current parameters; pause training from the panel)", flush=True)
         viewer.update(state.model, state.step)  # the step stays on the device until a frame is drawn
         viewer.wait_while_paused()
 
     try:
         return fit(config, dataset=dataset, progress=not args.no_progress, on_step=show)
     finally:
-        viewer.stop()
+        if viewer is not None:
+            viewer.stop()
 
 
 def _train(args: argparse.Namespace) -> int:
