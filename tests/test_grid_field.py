@@ -324,3 +324,14 @@ def test_the_quick_starts_settings_reach_its_baseline():
     assert not weights[1].uses_mixture  # the baseline: no mixture term, the same priors
     for config in configs:
         assert mx.build_model(config, key=jax.random.key(0)).field.scale_weighting is False
+
+
+@pytest.mark.parametrize("lookup", ["vmap", "batched"])
+def test_the_batched_density_is_the_density_of_each_point(lookup):
+    config = mx.load_config("builtin_grid", [f'grid.lookup="{lookup}"'])
+    model = mx.build_model(config, key=jax.random.key(0))
+    field = model.field
+    means = jax.random.uniform(jax.random.key(1), (37, 3), minval=-1.5, maxval=1.5)
+    covs = jnp.full((37, 3), 1e-3)
+    one_by_one = np.asarray([float(field.density(m, c)) for m, c in zip(means, covs, strict=True)])
+    np.testing.assert_allclose(np.asarray(field.density_batch(means, covs)), one_by_one, rtol=1e-5, atol=1e-7)

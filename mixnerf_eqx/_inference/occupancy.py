@@ -198,13 +198,31 @@ def update_occupancy(
     cell_size = grid.cell_size
     points = grid.box_min + (coords + jitter) * cell_size
     covs = jnp.broadcast_to(cell_size**2 / 12, (count, 3))
-    new = jax.lax.map(lambda pc: field.density(pc[0], pc[1]), (points, covs), batch_size=batch_size)
+    new = _batched_density(field, points, covs, batch_size)
     flat = grid.density.reshape(-1)
     flat = jnp.where(jnp.isinf(flat), flat, decay * flat)
     old = flat[cell_ids]
     kept = jnp.where(jnp.isinf(old), new, jnp.maximum(old, new))
     density = flat.at[cell_ids].set(kept).reshape(grid.density.shape)
     return eqx.tree_at(lambda g: g.density, grid, density)
+
+
+def _batched_density(
+    field: AbstractField, points: Float[Array, "count 3"], covs: Float[Array, "count 3"], batch_size: int
+) -> Float[Array, " count"]:
+    """`field.density_batch` over `batch_size` points at a time (the last batch padded)."""
+    count = points.shape[0]
+    if count <= batch_size:
+        return field.density_batch(points, covs)
+    batches = math.ceil(count / batch_size)
+    pad = batches * batch_size - count
+
+    def grouped(values: Array) -> Array:
+        padded = jnp.concatenate([values, jnp.broadcast_to(values[:1], (pad, 3))])
+        return padded.reshape(batches, batch_size, 3)
+
+    densities = jax.lax.map(lambda pc: field.density_batch(pc[0], pc[1]), (grouped(points), grouped(covs)))
+    return densities.reshape(-1)[:count]
 
 
 def refresh_occupancy(grid: OccupancyGrid, field: AbstractField, *, key: PRNGKey) -> OccupancyGrid:

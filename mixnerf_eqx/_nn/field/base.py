@@ -54,6 +54,11 @@ class AbstractField(eqx.Module):
         call this, so they pay for the density only.
         """
 
+    def density_batch(self, means: Float[Array, "batch 3"], covs: Float[Array, "batch 3"]) -> Float[Array, " batch"]:
+        """`density` at a batch of Gaussians: `jax.vmap` of it here; a grid field reads its
+        tables with one batched lookup (as `evaluate_batch` does)."""
+        return jax.vmap(self.density)(means, covs)
+
     @abc.abstractmethod
     def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         """Evaluates the field at one Gaussian.

@@ -442,6 +442,13 @@ class GridField(AbstractField):
     def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
         return self.heads.density(self._density_branch(mean, cov)[0])
 
+    def density_batch(self, means: Float[Array, "batch 3"], covs: Float[Array, "batch 3"]) -> Float[Array, " batch"]:
+        if self.lookup == "vmap":
+            return jax.vmap(self.density)(means, covs)
+        points = self._unit_point(means)
+        rows = self.encoding.encode_batch(points)
+        return jax.vmap(lambda r, p, c: self.heads.density(self._density_from_rows(r, p, c)[0]))(rows, points, covs)
+
     def _decode(
         self,
         rows: Float[Array, "levels features"],
