@@ -11,6 +11,7 @@ whole command, and the final validation and test PSNR (`metrics.json`); then the
 ratios (dense / skipping) and the paired PSNR differences (skipping - dense, Student-t 95%).
 
     python benchmarks/train_skipping.py --seeds 0 1 2                      # the quick start
+    python benchmarks/train_skipping.py --no-compilation-cache             # what a first run costs
     python benchmarks/train_skipping.py --config blender4_grid --seeds 0 --set data.data_dir='"../shared/data"'
 
 Output: `--out` (default `benchmarks/results/train_skipping_<backend>`) `.json` and `.md`.
@@ -35,10 +36,14 @@ MODES = {
 }
 
 
-def train(config: str | None, seed: int, mode: str, run_dir: Path, overrides: list[str]) -> dict[str, Any]:
+def train(
+    config: str | None, seed: int, mode: str, run_dir: Path, overrides: list[str], cache: bool = True
+) -> dict[str, Any]:
     """One training in a fresh process; its figures."""
     shutil.rmtree(run_dir, ignore_errors=True)
     command = [sys.executable, "-m", "mixnerf_eqx.train", "--no-progress"]
+    if not cache:
+        command.append("--no-compilation-cache")
     if config:
         command += ["--config", config]
     command += [f"train.seed={seed}", f'train.run_dir="{run_dir}"', *MODES[mode], *overrides]
@@ -107,18 +112,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-set", nargs="*", default=[], help="overrides for the skipping runs only")
     parser.add_argument("--runs-root", type=Path, default=harness.REPO / "runs" / "train_skipping")
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument(
+        "--no-compilation-cache",
+        action="store_true",
+        help="every run compiles its programs (what a first run costs); default: the commands' cache",
+    )
     args = parser.parse_args(argv)
     out = args.out or harness.RESULTS / f"train_skipping_{harness.platform_tag()}"
     runs = []
     for seed in args.seeds:
         for mode in MODES:
             extra = [*args.set, *(args.skip_set if mode == "skipping" else [])]
-            run = train(args.config, seed, mode, args.runs_root / f"seed_{seed}_{mode}", extra)
+            run_dir = args.runs_root / f"seed_{seed}_{mode}"
+            run = train(args.config, seed, mode, run_dir, extra, cache=not args.no_compilation_cache)
             print(json.dumps(run), flush=True)
             runs.append(run)
     text = table(runs)
     print(text, end="")
-    harness.write_json(out.with_suffix(".json"), {"config": args.config, "set": args.set, "skip_set": args.skip_set, "runs": runs})
+    harness.write_json(out.with_suffix(".json"), {
+            "config": args.config,
+            "set": args.set,
+            "skip_set": args.skip_set,
+            "compilation_cache": not args.no_compilation_cache,
+            "runs": runs,
+        })
     harness.write_markdown(out.with_suffix(".md"), text)
     return 0
 
