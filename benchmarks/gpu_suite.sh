@@ -5,7 +5,9 @@
 #      the same points on the same device (step_time.py: variants bare-mlp and mixnerf);
 #      the grid configs with both lookups (grid.lookup = vmap, what "auto" takes on a GPU, and
 #      batched, what it takes on a CPU), so the per-backend choice can be checked;
-#   2. the fern 3-view grid config at full resolution (504 x 378) trained for 8 minutes of step
+#   2. the paper's model's training step with skipping, by buffer share, against its dense
+#      step (skipping_step.py);
+#   3. the fern 3-view grid config at full resolution (504 x 378) trained for 8 minutes of step
 #      time, scored on every test view each minute: its PSNR curve (error_vs_time.py).
 # Results go to benchmarks/results/gpu_*.json (and the curve's .jsonl and .png).
 #
@@ -54,6 +56,12 @@ for lookup in vmap batched; do
         --variants bare-mlp mixnerf --out "$OUT/gpu_step_llff3_grid_$lookup.json" \
         "${SMALL[@]}" "${FERN[@]}" "data.data_dir=\"$DATA\"" "grid.lookup=\"$lookup\""
 done
+
+say "step time by skipping buffer share: the paper's model (8 x 256 MLP, 4096 rays, 128 + 128 samples)"
+python benchmarks/skipping_step.py --config builtin --repeats "$REPEATS" --out "$OUT/gpu_skipping_step_paper.json" \
+    mlp.width=256 mlp.depth=8 mlp.skip_layer=4 mlp.view_width=128 mlp.max_deg=16 \
+    model.num_coarse_samples=128 model.num_fine_samples=128 train.batch_size=4096 \
+    occupancy.box_radius=1.3 ${PAPER[@]:+"${PAPER[@]}"}
 
 say "fern 3-view, grid config, full resolution: PSNR against step time"
 fern_overrides=$(IFS=,; echo "${FERN[*]}")
