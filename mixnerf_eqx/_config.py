@@ -201,7 +201,7 @@ class OccupancyConfig:
     # compiled once).
     train_skipping: bool = False
     train_stop_transmittance: float = 1e-4  # 0: finished rays are evaluated in training
-    train_headroom: float = 0.1  # share of the samples added to the live share measured
+    train_headroom: float = 0.05  # share of the samples added to the live share measured
     train_budget_every: int = 10  # steps between measurements of the live share
 
 
