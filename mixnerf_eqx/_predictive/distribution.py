@@ -11,8 +11,8 @@ which level's heads it uses.
 The per-ray math is pure functions of arrays; `ColourMixture` and `TerminationDistribution`
 hold a batch of rays' parameters and lift those functions over it with `vmap`. Quantiles are
 root finds (`optx.Bisection`, bracketed by the components' own quantiles, or by the ray's
-first and last edge); the mode is a minimisation (`optx.BFGS`) started from the best
-component.
+first and last edge); the mode is a coordinate ascent over the components' locations,
+channel by channel, to a fixed point (`optx.fixed_point`), started from the best component.
 """
 
 import math

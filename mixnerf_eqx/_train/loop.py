@@ -300,19 +300,15 @@ MIN_SCORED_SIZE = 32
 
 
 def _check_scored_size(config: Config, dataset: Dataset) -> None:
-    """Refuses a scene whose held-out images are too small to score, before training."""
-    height, width = dataset.test.images.shape[1:3]
-    if min(height, width) >= MIN_SCORED_SIZE:
-        return
+    """Refuses a `data.image_downscale` that leaves held-out images too small to score,
+    before training (scenes whose own images are that small are the caller's choice)."""
     factor = config.data.image_downscale
-    fix = (
-        f"data.image_downscale = {factor} leaves {width}x{height} held-out images; choose a factor "
-        f"that leaves at least {MIN_SCORED_SIZE} pixels a side"
-        if factor > 1
-        else f"the held-out images are {width}x{height}"
-    )
+    height, width = dataset.test.images.shape[1:3]
+    if factor == 1 or min(height, width) >= MIN_SCORED_SIZE:
+        return
     raise ConfigError(
-        f"{fix}: the held-out metrics (LPIPS, SSIM) need images of {MIN_SCORED_SIZE} pixels a side or more"
+        f"data.image_downscale = {factor} leaves {width}x{height} held-out images; the held-out metrics "
+        f"(LPIPS, SSIM) need {MIN_SCORED_SIZE} pixels a side or more: choose a smaller factor"
     )
 
 

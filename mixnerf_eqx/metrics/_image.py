@@ -1,3 +1,6 @@
+"""Image metrics, computed in numpy: PSNR, SSIM (an 11-pixel Gaussian window) and the mean
+depth error."""
+
 import numpy as np
 from jaxtyping import Float
 

@@ -1,3 +1,6 @@
+"""Metrics of the DTU protocol: PSNR within object masks, the background composited outside
+them, and the average error of RegNeRF's tables."""
+
 import math
 
 import numpy as np

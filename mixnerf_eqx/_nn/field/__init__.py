@@ -1,3 +1,5 @@
+"""Radiance fields: the paper's MLP and the grid field, behind one abstract interface."""
+
 from .base import AbstractField as AbstractField
 from .base import FieldOutputs as FieldOutputs
 from .grid import AbstractGridEncoding as AbstractGridEncoding

@@ -1,3 +1,6 @@
+"""What a radiance field is (`AbstractField`) and what it returns at a point (`FieldOutputs`):
+density, colour and, for MixNeRF, the mixture's per-sample heads."""
+
 import abc
 
 import equinox as eqx

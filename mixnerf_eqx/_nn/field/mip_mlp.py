@@ -1,3 +1,6 @@
+"""The paper's field: mip-NeRF's MLP over integrated positional encodings, with MixNeRF's
+extra heads (per-sample scale and ray depth) beside density and colour."""
+
 from typing import Literal
 
 import equinox as eqx

@@ -1,3 +1,6 @@
+"""What a mixture head is: the per-ray mixture over a level's samples whose log-likelihood the
+NLL terms score."""
+
 import abc
 
 import equinox as eqx

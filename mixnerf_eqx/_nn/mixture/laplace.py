@@ -1,3 +1,6 @@
+"""MixNeRF's mixture of Laplace densities (paper eqs. 4-6): per-sample components whose mixing
+coefficients are the normalised blending weights, and the log-likelihoods the losses use."""
+
 from typing import Literal
 
 import equinox as eqx

@@ -1,3 +1,6 @@
+"""What every sampler is: an Equinox module that places a ray's samples, choosing the interval
+edges along it (for the fine level, from the coarse level's weights) and their frustum Gaussians."""
+
 import abc
 from typing import Literal
 

@@ -1,3 +1,6 @@
+"""The fine level's sampler: interval edges drawn from the coarse level's blending weights
+(blurred and padded, as mip-NeRF resamples), by inverting their piecewise-constant CDF."""
+
 from typing import Literal
 
 import equinox as eqx

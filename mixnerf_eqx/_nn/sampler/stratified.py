@@ -1,3 +1,6 @@
+"""The coarse level's sampler: stratified (jittered in training) interval edges along each ray,
+linear in distance or in disparity."""
+
 from typing import Literal
 
 import equinox as eqx
