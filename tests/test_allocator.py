@@ -159,15 +159,25 @@ def test_the_system_allocator_and_scripts_are_left_alone(tmp_path):
 
 @linux_only
 def test_a_preload_that_fails_is_not_retried(tmp_path):
-    # Not a shared library: the loader ignores it with a message, and the command goes on once.
+    # An ELF header and nothing usable behind it: the loader ignores it with a message, and
+    # the command goes on once.
     fake = tmp_path / "libfake.so"
-    fake.write_bytes(b"not an ELF file")
+    fake.write_bytes(b"\x7fELF" + bytes(60))
     records = _run_probed(
         tmp_path, ["-m", "mixnerf_eqx.train", "--help"], MIXNERF_ALLOCATOR=str(fake), LD_PRELOAD=None
     )
     assert "cannot be preloaded" in _run_probed.stderr  # it was started again, with the preload
     assert len(records) == 1
     assert records[0]["LD_PRELOAD"] is None and records[0]["marks"] == []
+    # Not an ELF file at all: named before any restart, and the command goes on as it is.
+    text = tmp_path / "libtext.so"
+    text.write_bytes(b"not an ELF file")
+    records = _run_probed(
+        tmp_path, ["-m", "mixnerf_eqx.train", "--help"], MIXNERF_ALLOCATOR=str(text), LD_PRELOAD=None
+    )
+    assert "is not a shared library (no ELF header" in _run_probed.stderr
+    assert "cannot be preloaded" not in _run_probed.stderr  # never handed to the loader
+    assert len(records) == 1 and records[0]["LD_PRELOAD"] is None
 
 
 @linux_only

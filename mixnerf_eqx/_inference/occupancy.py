@@ -208,8 +208,8 @@ def update_occupancy(
 
 
 def _batched_density(
-    field: AbstractField, points: Float[Array, "count 3"], covs: Float[Array, "count 3"], batch_size: int
-) -> Float[Array, " count"]:
+    field: AbstractField, points: Float[Array, "points 3"], covs: Float[Array, "points 3"], batch_size: int
+) -> Float[Array, " points"]:
     """`field.density_batch` over `batch_size` points at a time (the last batch padded)."""
     count = points.shape[0]
     if count <= batch_size:
