@@ -564,3 +564,28 @@ def test_a_downscale_that_leaves_images_too_small_to_score_is_refused_before_tra
     with pytest.raises(ConfigError, match=r"data.image_downscale = 16 leaves 31x23 held-out images.*choose a smaller factor"):
         mx.fit(config, progress=False)
     assert not (tmp_path / "run").exists()  # refused before anything was written
+
+
+@pytest.mark.parametrize("command", ["train", "eval", "render", "sweep", "view"])
+def test_a_ctrl_c_while_a_command_loads_its_modules_is_status_130_without_a_traceback(
+    command, monkeypatch, capsys
+):
+    # The command's modules raise KeyboardInterrupt as they load (a Ctrl-C in the first
+    # seconds, inside an import whose frames Python hides from the traceback).
+    import runpy
+    import types
+
+    class Interrupted(types.ModuleType):
+        def __getattr__(self, name):
+            raise KeyboardInterrupt
+
+    monkeypatch.setitem(sys.modules, f"mixnerf_eqx.cli.{command}", Interrupted(f"mixnerf_eqx.cli.{command}"))
+    monkeypatch.delitem(sys.modules, f"mixnerf_eqx.{command}", raising=False)
+    with pytest.raises(SystemExit) as stopped:
+        runpy.run_module(f"mixnerf_eqx.{command}", run_name="__main__")
+    assert stopped.value.code == 130
+    assert "stopped while loading; nothing was done" in capsys.readouterr().err
+    # Imported as a module (not run as the command), the interrupt is the caller's.
+    monkeypatch.delitem(sys.modules, f"mixnerf_eqx.{command}", raising=False)
+    with pytest.raises(KeyboardInterrupt):
+        runpy.run_module(f"mixnerf_eqx.{command}", run_name="not_main")
