@@ -295,3 +295,24 @@ def test_without_matplotlib_plots_are_skipped_with_a_word(tmp_path, capsys, monk
     assert not (tmp_path / "curves.png").exists()
     monkeypatch.undo()
     assert pyplot("plots").get_backend().lower() == "agg"  # files only, no window
+
+
+def test_eval_of_a_run_folder_it_cannot_write_to_asks_for_out(trained, monkeypatch, capsys):
+    # The suite runs as root, which file permissions do not stop: the refusal a read-only run
+    # folder gives is simulated where eval creates its staging folder.
+    from pathlib import Path
+
+    real_mkdir = Path.mkdir
+
+    def read_only(self, *args, **kwargs):
+        if self.name.endswith(".partial") and self.parent == trained.run_dir:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    before = sorted(p.name for p in trained.run_dir.iterdir())
+    code = eval_main([str(trained.run_dir), "--no-progress", "--no-lpips", "--no-renders"])
+    error = capsys.readouterr().err.strip()
+    assert code == 2
+    assert "is not writable: give --out a folder you can write to" in error and "\n" not in error
+    assert sorted(p.name for p in trained.run_dir.iterdir()) == before
