@@ -1,15 +1,8 @@
 """`python -m mixnerf_eqx.train`: see `mixnerf_eqx.cli.train`."""
 
-import sys
+from ._util.entry import command_main
 
-try:
-    from .cli.train import main as main
-except KeyboardInterrupt:
-    # Ctrl-C while the command was still loading its modules: nothing was done yet.
-    if __name__ != "__main__":
-        raise
-    print("stopped while loading; nothing was done", file=sys.stderr)
-    raise SystemExit(130) from None
+main = command_main("train", __name__)
 
 if __name__ == "__main__":
     raise SystemExit(main())
