@@ -99,14 +99,21 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._nn.sampler import blur_weights as blur_weights
     from ._nn.sampler import sample_piecewise_constant as sample_piecewise_constant
     from ._predictive.distribution import ColourMixture as ColourMixture
+    from ._predictive.distribution import IntervalLevels as IntervalLevels
     from ._predictive.distribution import Predictive as Predictive
     from ._predictive.distribution import PredictiveSummary as PredictiveSummary
     from ._predictive.distribution import TerminationDistribution as TerminationDistribution
     from ._predictive.distribution import predictive as predictive
     from ._predictive.distribution import summarise as summarise
+    from ._predictive.exports import world_points as world_points
+    from ._predictive.exports import write_depth_exports as write_depth_exports
+    from ._predictive.recalibration import Recalibration as Recalibration
     from ._predictive.uncertainty import Sparsification as Sparsification
+    from ._predictive.uncertainty import calibration_pit as calibration_pit
     from ._predictive.uncertainty import calibration_report as calibration_report
     from ._predictive.uncertainty import collect_mixtures as collect_mixtures
+    from ._predictive.uncertainty import coverage_report as coverage_report
+    from ._predictive.uncertainty import fit_recalibration as fit_recalibration
     from ._predictive.uncertainty import fit_temperature as fit_temperature
     from ._predictive.uncertainty import interval_coverage as interval_coverage
     from ._predictive.uncertainty import predict_rays as predict_rays

@@ -74,6 +74,8 @@ JUSTIFIED_EXTRAS = frozenset(
         "corners",
         # Training that skips: a batch's samples as one flat list (rays x samples).
         "points",
+        # Predictive intervals: one row per interval mass (recalibrated quantile levels).
+        "masses",
     }
 )
 

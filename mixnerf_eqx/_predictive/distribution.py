@@ -26,7 +26,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from .._custom_types import RGB, Edges, PerSample, PerSampleRGB, ScalarLike
-from .._nn.compositing import BISECTION_STEPS, expected_depth, termination_quantile
+from .._nn.compositing import BISECTION_STEPS, expected_depth, termination_cdf, termination_quantile
 from .._nn.mixture import LaplaceMixture
 from .._nn.mixture.laplace import laplace_log_density
 from .._nn.model import MixNeRF
@@ -134,6 +134,16 @@ def joint_log_density(
     scores (eqs. 4-6); `-inf` nowhere a component has mass and the scales are finite."""
     component = jnp.sum(laplace_log_density(rgb, location, scale), axis=-1)
     present = coefficients > 0
+    terms = jnp.where(present, jnp.log(jnp.where(present, coefficients, 1.0)) + component, -jnp.inf)
+    return jax.scipy.special.logsumexp(terms)
+
+
+def channel_log_density(
+    x: Float[Array, ""], coefficients: PerSample, location: PerSample, scale: PerSample
+) -> Float[Array, ""]:
+    """One colour channel's marginal log density `log sum_j pi_j Laplace(x; mu_j, beta_j)`."""
+    present = coefficients > 0
+    component = laplace_log_density(x, location, scale)
     terms = jnp.where(present, jnp.log(jnp.where(present, coefficients, 1.0)) + component, -jnp.inf)
     return jax.scipy.special.logsumexp(terms)
 
@@ -295,6 +305,20 @@ class ColourMixture(eqx.Module):
 
         return jnp.moveaxis(self._per_ray(one_ray), len(self.batch_shape), 0)
 
+    def channel_quantiles(self, levels: Float[Array, "_ channels"]) -> Float[Array, "_ *batch channels"]:
+        """Per-channel quantiles where each channel has levels of its own: row `i` of `levels`
+        gives channel `c` the level `levels[i, c]` in (0, 1) (recalibrated intervals differ by
+        channel, `Recalibration`); one batched bisection as in `quantiles`."""
+        levels_array = _check_channel_levels(levels, self.location.shape[-1], self.location.dtype)
+
+        def one_ray(coefficients, location, scale):
+            per_channel = jax.vmap(channel_quantile, in_axes=(0, None, 1, 1))
+            return jax.vmap(per_channel, in_axes=(0, None, None, None))(
+                levels_array, coefficients, location, scale
+            )
+
+        return jnp.moveaxis(self._per_ray(one_ray), len(self.batch_shape), 0)
+
     def quantile(self, level: ScalarLike) -> Float[Array, "*batch channels"]:
         """Per-channel quantile at `level` in (0, 1) (`0.5`: the median)."""
         level = _check_level(level, dtype=self.location.dtype)
@@ -325,6 +349,15 @@ class ColourMixture(eqx.Module):
             return joint_log_density(x, coefficients, location, scale)
 
         return self._per_ray(one_ray, self._colours(rgb, "log_prob"))
+
+    def channel_log_prob(self, rgb: Float[Array, "*batch channels"]) -> Float[Array, "*batch channels"]:
+        """Each channel's marginal log density at `rgb` (`channel_log_density`): the density
+        that per-channel calibration measures score (FlipNeRF's NLL averages it)."""
+
+        def one_ray(coefficients, location, scale, x):
+            return jax.vmap(channel_log_density, in_axes=(0, None, 1, 1))(x, coefficients, location, scale)
+
+        return self._per_ray(one_ray, self._colours(rgb, "channel_log_prob"))
 
     def mode(self) -> Float[Array, "*batch channels"]:
         """The mode of the joint RGB density (see `joint_mode`)."""
@@ -376,6 +409,13 @@ class TerminationDistribution(eqx.Module):
             return _standard_deviation(masses, centres, widths)
 
         return self._per_ray(one_ray)
+
+    def cdf(self, t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
+        """The probability that each ray terminates before `t` (`termination_cdf`); 1 for a
+        `t` beyond the last edge, `inf` included."""
+        if tuple(jnp.shape(t)) != self.batch_shape:
+            raise ValueError(f"cdf takes one distance per ray, shape {self.batch_shape}; got shape {tuple(jnp.shape(t))}")
+        return _per_ray(self.batch_shape, termination_cdf, t, self.weights, self.t_edges)
 
     def quantiles(self, levels: Levels) -> Float[Array, "_ *batch"]:
         """The termination distance's quantiles at each of `levels` in (0, 1), stacked in
@@ -474,6 +514,16 @@ def _check_levels(levels: Levels, dtype) -> Float[Array, " _"]:
         return jnp.stack([jnp.asarray(_check_level(level, dtype=dtype), dtype) for level in levels])
     if not isinstance(levels, np.ndarray | jax.Array) or np.ndim(levels) != 1 or np.shape(levels)[0] == 0:
         raise ValueError(f"quantile levels must be a non-empty sequence or 1-d array, got {levels!r}")
+    message = _level_message("a quantile level or interval mass", dtype)
+    return jnp.asarray(_checked(levels, _in_unit_interval(dtype), message), dtype)
+
+
+def _check_channel_levels(levels, channels: int, dtype) -> Float[Array, "_ channels"]:
+    """`levels` (an array of shape `(count, channels)`), each checked as `_check_level` does."""
+    if not isinstance(levels, np.ndarray | jax.Array) or np.ndim(levels) != 2 or np.shape(levels)[1] != channels:
+        raise ValueError(f"per-channel levels must be an array of shape (count, {channels}), got {levels!r}")
+    if np.shape(levels)[0] == 0:
+        raise ValueError("quantile levels must not be empty")
     message = _level_message("a quantile level or interval mass", dtype)
     return jnp.asarray(_checked(levels, _in_unit_interval(dtype), message), dtype)
 
@@ -621,6 +671,11 @@ class PredictiveSummary(eqx.Module):
       termination distance.
     - `rgb`, `render_depth`, `acc`: the fine level's render.
     - `log_prob`: the joint colour log density of the given targets (`None` without them).
+    - `colour_cdf`, `colour_channel_log_prob`: per channel, the colour mixture's distribution
+      function and marginal log density at the targets (`None` without them): what
+      recalibration is fitted on and per-channel calibration measures score.
+    - `depth_cdf`: the termination distance's distribution function at the given true depths
+      (`None` without them).
     """
 
     masses: tuple[float, ...] = eqx.field(static=True)
@@ -640,9 +695,42 @@ class PredictiveSummary(eqx.Module):
     render_depth: Float[Array, "*batch"]
     acc: Float[Array, "*batch"]
     log_prob: Float[Array, "*batch"] | None
+    colour_cdf: Float[Array, "*batch channels"] | None = None
+    colour_channel_log_prob: Float[Array, "*batch channels"] | None = None
+    depth_cdf: Float[Array, "*batch"] | None = None
 
 
 DEFAULT_MASSES = (0.5, 0.8, 0.9, 0.95)
+
+
+class IntervalLevels(eqx.Module):
+    """The quantile levels that bound each central interval, per interval mass: the raw
+    `(1 - mass) / 2` and `(1 + mass) / 2`, or levels a recalibration moved
+    (`mixnerf_eqx.Recalibration.interval_levels`). Arrays, so a new calibration recompiles
+    nothing.
+
+    **Fields:**
+
+    - `colour_lower`, `colour_upper`: per mass and colour channel.
+    - `depth_lower`, `depth_upper`: per mass, for the termination distance.
+    """
+
+    colour_lower: Float[Array, "masses channels"]
+    colour_upper: Float[Array, "masses channels"]
+    depth_lower: Float[Array, " masses"]
+    depth_upper: Float[Array, " masses"]
+
+    @staticmethod
+    def raw(masses: Sequence[ScalarLike], channels: int = 3) -> "IntervalLevels":
+        """The model's own central intervals: `(1 -+ mass) / 2` for every channel and depth."""
+        masses = np.asarray([float(_check_level(mass, "an interval mass")) for mass in masses], np.float64)
+        lower, upper = 0.5 * (1.0 - masses), 0.5 * (1.0 + masses)
+        return IntervalLevels(
+            colour_lower=jnp.asarray(np.repeat(lower[:, None], channels, axis=1), jnp.float32),
+            colour_upper=jnp.asarray(np.repeat(upper[:, None], channels, axis=1), jnp.float32),
+            depth_lower=jnp.asarray(lower, jnp.float32),
+            depth_upper=jnp.asarray(upper, jnp.float32),
+        )
 
 
 def summarise(
@@ -651,21 +739,35 @@ def summarise(
     targets: Float[Array, "*batch channels"] | None = None,
     *,
     with_mode: bool = False,
+    levels: IntervalLevels | None = None,
+    depth_targets: Float[Array, "*batch"] | None = None,
 ) -> PredictiveSummary:
     """Every summary of `prediction` (one batched quantile solve for all channels and
-    levels), with the log density of `targets` if given and, with `with_mode`, the mode of
-    each ray's joint colour density (a search per ray, which costs about as much as the
-    quantiles)."""
+    levels), with the log density and distribution function of `targets` (and of
+    `depth_targets`) if given and, with `with_mode`, the mode of each ray's joint colour
+    density (a search per ray, which costs about as much as the quantiles). `levels` moves
+    the intervals' ends (recalibrated intervals); by default they are the central intervals
+    of each mass."""
     if isinstance(masses, str) or not isinstance(masses, Sequence) or not masses:
         raise ValueError(f"masses must be a non-empty sequence of interval masses, got {masses!r}")
     dtype = prediction.colour.location.dtype
     masses = tuple(float(_check_level(mass, "an interval mass", dtype=dtype)) for mass in masses)
     colour, depth = prediction.colour, prediction.depth
-    # One batched solve for every level: the median, then each interval's two ends.
-    levels = (0.5, *(0.5 * (1.0 - mass) for mass in masses), *(0.5 * (1.0 + mass) for mass in masses))
-    colour_quantiles = colour.quantiles(levels)
-    depth_quantiles = depth.quantiles(levels)
     count = len(masses)
+    channels = colour.location.shape[-1]
+    if levels is None:
+        levels = IntervalLevels.raw(masses, channels)
+    if levels.colour_lower.shape != (count, channels) or levels.depth_lower.shape != (count,):
+        raise ValueError(
+            f"levels must hold {count} interval masses ({channels} colour channels); got colour levels of "
+            f"shape {levels.colour_lower.shape} and depth levels of shape {levels.depth_lower.shape}"
+        )
+    # One batched solve for every level: the median, then each interval's two ends.
+    half = jnp.full((1, channels), 0.5, dtype)
+    colour_levels = jnp.concatenate([half, levels.colour_lower, levels.colour_upper]).astype(dtype)
+    depth_levels = jnp.concatenate([half[0, :1], levels.depth_lower, levels.depth_upper]).astype(dtype)
+    colour_quantiles = colour.channel_quantiles(colour_levels)
+    depth_quantiles = depth.quantiles(depth_levels)
     return PredictiveSummary(
         masses=masses,
         colour_mean=colour.mean(),
@@ -684,4 +786,7 @@ def summarise(
         render_depth=prediction.render_depth,
         acc=prediction.acc,
         log_prob=None if targets is None else colour.log_prob(targets),
+        colour_cdf=None if targets is None else colour.cdf(targets),
+        colour_channel_log_prob=None if targets is None else colour.channel_log_prob(targets),
+        depth_cdf=None if depth_targets is None else depth.cdf(depth_targets),
     )

@@ -28,6 +28,7 @@ from ..data import Views, rays_for_views
 from .distribution import (
     DEFAULT_MASSES,
     ColourMixture,
+    IntervalLevels,
     PredictiveSummary,
     _check_level,
     _check_bounds,
@@ -35,6 +36,7 @@ from .distribution import (
     predictive,
     summarise,
 )
+from .recalibration import Recalibration, calibration_error
 
 
 def _summarise_rays(
@@ -44,8 +46,17 @@ def _summarise_rays(
     targets: Float[Array, "batch channels"] | None,
     masses: tuple[float, ...],
     with_mode: bool,
+    levels: IntervalLevels,
+    depth_targets: Float[Array, " batch"] | None,
 ) -> PredictiveSummary:
-    return summarise(predictive(model, rays, temperature=temperature), masses, targets, with_mode=with_mode)
+    return summarise(
+        predictive(model, rays, temperature=temperature),
+        masses,
+        targets,
+        with_mode=with_mode,
+        levels=levels,
+        depth_targets=depth_targets,
+    )
 
 
 _summarise_chunk = eqx.filter_jit(_summarise_rays)
@@ -65,6 +76,8 @@ def predict_rays(
     temperature: float = 1.0,
     targets: np.ndarray | None = None,
     with_mode: bool = False,
+    levels: IntervalLevels | None = None,
+    depth_targets: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The predictive summaries of any number of rays, `chunk` rays at a time, on the host.
 
@@ -79,8 +92,13 @@ def predict_rays(
     - `chunk`: rays at once.
     - `masses`: the masses of the central intervals.
     - `temperature`: multiplies every `beta` (see `fit_temperature`).
-    - `targets`: true colours with the rays' batch shape, to score (`log_prob`).
+    - `targets`: true colours with the rays' batch shape, to score (`log_prob`, and the
+      distribution function and marginal densities that recalibration is fitted on).
     - `with_mode`: also the mode of each ray's joint colour density (`colour_mode`).
+    - `levels`: the intervals' quantile levels (`Recalibration.interval_levels`; default:
+      the central intervals of `masses`).
+    - `depth_targets`: true depths with the rays' batch shape (`inf` where a ray hits
+      nothing), to give the termination distance's distribution function there (`depth_cdf`).
 
     **Returns:**
 
@@ -98,17 +116,35 @@ def predict_rays(
             f"targets takes one colour per ray, shape {(*rays.batch_shape, 3)} (the rays' batch shape and "
             f"3 channels); got shape {tuple(np.shape(targets))}"
         )
+    if depth_targets is not None and tuple(np.shape(depth_targets)) != rays.batch_shape:
+        raise ValueError(
+            f"depth_targets takes one depth per ray, shape {rays.batch_shape}; got shape "
+            f"{tuple(np.shape(depth_targets))}"
+        )
+    levels = IntervalLevels.raw(masses) if levels is None else levels
+    if levels.colour_lower.shape[0] != len(masses):
+        raise ValueError(f"levels hold {levels.colour_lower.shape[0]} interval masses, masses {len(masses)}")
     batch_shape = rays.batch_shape
     if math.prod(batch_shape) == 0:
-        return _no_rays(model, rays, masses, targets is not None, with_mode)
+        return _no_rays(model, rays, masses, targets is not None, with_mode, levels, depth_targets is not None)
     scale = jnp.asarray(temperature, jnp.float32)
+
+    # The true colours and depths travel as one array of columns (the chunked map pads one).
+    columns = []
+    if targets is not None:
+        columns.append(np.asarray(targets, np.float32).reshape(-1, 3))
+    if depth_targets is not None:
+        columns.append(np.asarray(depth_targets, np.float32).reshape(-1, 1))
+    extra = np.concatenate(columns, axis=1) if columns else None
 
     def summarise_chunk(piece: RayBundle, real: int, target) -> dict[str, Array]:
         del real
-        summary = _summarise_chunk(model, piece, scale, target, masses, with_mode)
+        colours = None if targets is None else target[:, :3]
+        depths = None if depth_targets is None else target[:, -1]
+        summary = _summarise_chunk(model, piece, scale, colours, masses, with_mode, levels, depths)
         return _fields(summary)
 
-    parts, count = map_ray_chunks(summarise_chunk, rays, chunk, targets)
+    parts, count = map_ray_chunks(summarise_chunk, rays, chunk, extra)
     result = {}
     for name in parts[0]:
         # Interval bounds carry the masses' axis in front of the rays'.
@@ -121,7 +157,13 @@ def predict_rays(
 
 
 def _no_rays(
-    model: MixNeRF, rays: RayBundle, masses: tuple[float, ...], with_targets: bool, with_mode: bool
+    model: MixNeRF,
+    rays: RayBundle,
+    masses: tuple[float, ...],
+    with_targets: bool,
+    with_mode: bool,
+    levels: IntervalLevels,
+    with_depth_targets: bool,
 ) -> dict[str, np.ndarray]:
     """`predict_rays`'s answer for a batch without rays: every field, empty, at its shape."""
     one = jax.tree_util.tree_map(
@@ -129,7 +171,10 @@ def _no_rays(
     )
     one = eqx.tree_at(lambda r: r.far, one, 2.0 * one.near)
     target = jnp.zeros((1, 3), jnp.float32) if with_targets else None
-    shapes = eqx.filter_eval_shape(_summarise_rays, model, one, jnp.float32(1.0), target, masses, with_mode)
+    depth = jnp.zeros((1,), jnp.float32) if with_depth_targets else None
+    shapes = eqx.filter_eval_shape(
+        _summarise_rays, model, one, jnp.float32(1.0), target, masses, with_mode, levels, depth
+    )
     fields = {f.name: getattr(shapes, f.name) for f in dataclasses.fields(shapes) if f.name != "masses"}
     result = {}
     for name, shape in fields.items():
@@ -159,14 +204,16 @@ def predict_views(
     temperature: float = 1.0,
     with_targets: bool = True,
     with_mode: bool = False,
+    levels: IntervalLevels | None = None,
 ) -> dict[str, np.ndarray]:
     """`predict_rays` over every view of `views`, one view's rays at a time, stacked over
-    the views; scored against the views' images unless `with_targets` is false (`with_mode`
-    as in `predict_rays`)."""
+    the views; scored against the views' images (and true depths, where the views have
+    them) unless `with_targets` is false (`with_mode` and `levels` as in `predict_rays`)."""
     per_view = []
     for index in range(views.num_views):
         one = views.select([index])
         targets = one.images if with_targets else None
+        depths = one.depths if with_targets and one.depths is not None else None
         per_view.append(
             predict_rays(
                 model,
@@ -176,6 +223,8 @@ def predict_views(
                 temperature=temperature,
                 targets=targets,
                 with_mode=with_mode,
+                levels=levels,
+                depth_targets=depths,
             )
         )
     stacked = {}
@@ -289,6 +338,161 @@ def fit_temperature(mixtures: ColourMixture, targets: Float[Array, "batch channe
         max_steps=100,
     )
     return float(jnp.exp(solution.value))
+
+
+@eqx.filter_jit
+def _pit_chunk(
+    model: MixNeRF, rays: RayBundle, temperature: Float[Array, ""], targets: Float[Array, "batch _"]
+) -> dict[str, Array]:
+    prediction = predictive(model, rays, temperature=temperature)
+    colours, depths = targets[:, :3], targets[:, 3]
+    return {
+        "colour_cdf": prediction.colour.cdf(colours),
+        "colour_log_density": prediction.colour.channel_log_prob(colours),
+        "depth_cdf": prediction.depth.cdf(depths),
+    }
+
+
+def calibration_pit(
+    model: MixNeRF,
+    views: Views,
+    near: float,
+    far: float,
+    chunk: int = 4096,
+    *,
+    temperature: float = 1.0,
+    max_pixels: int | None = 65536,
+    seed: int = 0,
+) -> dict[str, np.ndarray]:
+    """The predictive distribution functions at the true values of `views`' pixels (the PIT
+    values recalibration is fitted on) and the colour channels' marginal log densities there.
+
+    Only the distribution functions are computed (no quantile solve). With `max_pixels`, that
+    many pixels are drawn at random (by `seed`) from all of the views' pixels.
+
+    **Returns:**
+
+    `colour_cdf` and `colour_log_density` of shape `(pixels, channels)`, and `depth_cdf` of
+    shape `(depth_pixels,)` over the drawn pixels whose true depth is known and finite (empty
+    where the views have no true depth).
+    """
+    _check_temperature(temperature)
+    if views.num_views == 0:
+        raise ValueError("no calibration views: calibration needs at least one view the model did not train on")
+    rays = rays_for_views(views, near, far).reshape(-1)
+    colours = views.images.reshape(-1, 3).astype(np.float32)
+    depths = (
+        np.full(colours.shape[0], np.nan, np.float32)
+        if views.depths is None
+        else views.depths.reshape(-1).astype(np.float32)
+    )
+    total = colours.shape[0]
+    if max_pixels is not None and max_pixels < total:
+        if max_pixels < 1:
+            raise ValueError(f"max_pixels must be at least 1, got {max_pixels}")
+        chosen = np.sort(np.random.default_rng(seed).choice(total, size=max_pixels, replace=False))
+        rays = jax.tree_util.tree_map(lambda x: x[chosen], rays)
+        colours, depths = colours[chosen], depths[chosen]
+    known = np.isfinite(depths)
+    targets = np.concatenate([colours, np.where(known, depths, 0.0)[:, None]], axis=1)
+    scale = jnp.asarray(temperature, jnp.float32)
+    parts, count = map_ray_chunks(lambda piece, real, extra: _pit_chunk(model, piece, scale, extra), rays, chunk, targets)
+    joined = {name: join_chunks([part[name] for part in parts], count) for name in parts[0]}
+    return {
+        "colour_cdf": joined["colour_cdf"].astype(np.float64),
+        "colour_log_density": joined["colour_log_density"].astype(np.float64),
+        "depth_cdf": joined["depth_cdf"][known].astype(np.float64),
+    }
+
+
+def fit_recalibration(
+    model: MixNeRF,
+    views: Views,
+    near: float,
+    far: float,
+    method: str = "conformal",
+    masses: Sequence[float] = DEFAULT_MASSES,
+    chunk: int = 4096,
+    *,
+    temperature: float = 1.0,
+    max_pixels: int | None = 65536,
+    seed: int = 0,
+    description: str | None = None,
+) -> Recalibration:
+    """Fits `method` (`"isotonic"`, `"conformal"` or `"raw"`) on `views`, which must be views
+    the model did not train on and that no result is reported on (a scene's validation views):
+    see `mixnerf_eqx._predictive.recalibration`. `temperature` scales the mixture first, as it
+    will be scaled where the recalibration is used; `max_pixels` and `seed` as in
+    `calibration_pit`."""
+    pit = calibration_pit(
+        model, views, near, far, chunk, temperature=temperature, max_pixels=max_pixels, seed=seed
+    )
+    where = description or f"{views.num_views} views"
+    depth = pit["depth_cdf"] if pit["depth_cdf"].size else None
+    return Recalibration.fit(
+        method, pit["colour_cdf"], depth, masses, fitted_on=f"{where}, {pit['colour_cdf'].shape[0]} pixels"
+    )
+
+
+def coverage_report(
+    maps: dict[str, np.ndarray],
+    images: Float[np.ndarray, "num_views height width channels"],
+    depths: Float[np.ndarray, "num_views height width"] | None = None,
+    recalibration: Recalibration | None = None,
+) -> dict:
+    """How well the intervals and distribution functions of `maps` (from `predict_views`
+    with targets, whose intervals were bounded by `recalibration`'s levels) hold on `images`
+    (and `depths`, `inf` where a ray hits nothing: left out).
+
+    **Returns:**
+
+    A JSON-ready dict: the method and what it was fitted on; per interval mass, the colour
+    coverage pooled over every pixel and channel, its range over the views, and the mean
+    interval width; the same for depth where true depths are known; FlipNeRF's NLL (the
+    per-channel marginal densities, recalibrated for isotonic, averaged over pixels and
+    channels, nats) and calibration error (mean over the channels, and per channel).
+    """
+    recalibration = recalibration or Recalibration.raw(tuple(float(m) for m in maps["masses"]))
+    num_views = images.shape[0]
+    colour = {}
+    for index, mass in enumerate(maps["masses"]):
+        lower, upper = maps["colour_lower"][index], maps["colour_upper"][index]
+        inside = (images >= lower) & (images <= upper)
+        per_view = inside.reshape(num_views, -1).mean(axis=1)
+        colour[f"{mass:g}"] = {
+            "pooled": float(inside.mean()),
+            "per_view_min": float(per_view.min()),
+            "per_view_max": float(per_view.max()),
+            "width": float(np.mean(upper - lower)),
+        }
+    depth_coverage = None
+    if depths is not None and np.isfinite(depths).any():
+        depth_coverage = {}
+        known = np.isfinite(depths)
+        for index, mass in enumerate(maps["masses"]):
+            lower, upper = maps["depth_lower"][index], maps["depth_upper"][index]
+            inside = (depths >= lower) & (depths <= upper)
+            per_view = [inside[v][known[v]].mean() for v in range(num_views) if known[v].any()]
+            depth_coverage[f"{mass:g}"] = {
+                "pooled": float(inside[known].mean()),
+                "per_view_min": float(min(per_view)),
+                "per_view_max": float(max(per_view)),
+                "width": float(np.mean((upper - lower)[known])),
+            }
+    cdf = maps["colour_cdf"].reshape(-1, maps["colour_cdf"].shape[-1]).astype(np.float64)
+    log_density = maps["colour_channel_log_prob"].reshape(cdf.shape).astype(np.float64)
+    if recalibration.colour_map is not None:
+        log_density = log_density + recalibration.colour_map.log_slope(cdf)
+    errors = calibration_error(recalibration.calibrated_pit(cdf))
+    return {
+        "method": recalibration.method,
+        "fitted_on": recalibration.fitted_on,
+        "colour_coverage": colour,
+        "depth_coverage": depth_coverage,
+        "nll_per_channel": float(-np.mean(log_density)),
+        "calibration_error": float(errors.mean()),
+        "calibration_error_per_channel": errors.tolist(),
+    }
 
 
 def calibration_report(

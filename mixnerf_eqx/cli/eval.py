@@ -5,7 +5,10 @@ a time in chunks of rays (memory stays bounded whatever the resolution), writes 
 mean metrics to `RUN_DIR/eval/metrics.json` with colour and depth PNGs beside it, and prints a
 table. LPIPS needs the optional `lpips` extra; without it LPIPS is reported as unavailable.
 With `--uncertainty` it also writes the predictive distribution's spread beside the error maps,
-the arrays in `uncertainty.npz`, and the calibration measures (`docs/predictive.md`). Last, it
+the arrays in `uncertainty.npz`, depth and its interval as `.npy` arrays in scene units, a
+coloured point cloud per view (`.ply`, each point with its uncertainty), and the calibration
+measures; the intervals are recalibrated on the scene's validation views (`--calibration`,
+default conformal; `docs/predictive.md`). Last, it
 draws the run's training curves from its log into `RUN_DIR/curves.png` (with matplotlib).
 """
 
@@ -21,7 +24,15 @@ import numpy as np
 
 from .._config import ConfigError
 from .._inference.evaluation import Rendered, evaluate
-from .._predictive.uncertainty import calibration_report, predict_views, write_uncertainty_maps
+from .._predictive.exports import write_depth_exports
+from .._predictive.recalibration import METHODS, Recalibration
+from .._predictive.uncertainty import (
+    calibration_report,
+    coverage_report,
+    fit_recalibration,
+    predict_views,
+    write_uncertainty_maps,
+)
 from .._train.run_folder import (
     Run,
     dataset_record,
@@ -83,6 +94,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=None,
         help="with --uncertainty: multiply every beta by this factor (a post-hoc calibration; default 1)",
     )
+    parser.add_argument(
+        "--calibration",
+        choices=METHODS,
+        default=None,
+        help="with --uncertainty: how the intervals are recalibrated, fitted on the scene's validation "
+        "views: conformal (a coverage guarantee for exchangeable pixels; the default), isotonic, or raw "
+        "(the model's own intervals, no validation views needed)",
+    )
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
     add_typecheck_argument(parser)
     add_compilation_cache_argument(parser)
@@ -137,12 +156,18 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
         )
     if "uncertainty" in result:
         report = result["uncertainty"]
-        coverage = ", ".join(f"{mass}: {value['mean']:.3f}" for mass, value in report["coverage"].items())
+        calibrated = report["calibration"]
+        coverage = ", ".join(
+            f"{mass}: {value['pooled']:.3f} (raw {report['raw_coverage'][mass]:.3f})"
+            for mass, value in calibrated["colour_coverage"].items()
+        )
         depth = "n/a" if report["depth_ause"] is None else f"{report['depth_ause']:.4f}"
         print(
-            f"uncertainty: interval coverage ({coverage}), held-out NLL {report['nll']:.3f} per pixel, "
-            f"AUSE colour {report['colour_ause']:.4f}, depth {depth}; "
-            f"{report['seconds_per_frame']:.2f} s per frame; arrays: {out / 'uncertainty.npz'}"
+            f"uncertainty: {calibrated['method']} intervals (fitted on {calibrated['fitted_on']}), colour "
+            f"coverage {coverage}; calibration error {calibrated['calibration_error']:.4f}, NLL "
+            f"{calibrated['nll_per_channel']:.3f} per channel; AUSE colour {report['colour_ause']:.4f}, depth "
+            f"{depth}; {report['seconds_per_frame']:.2f} s per frame; arrays: {out / 'uncertainty.npz'}, "
+            f"depth (.npy) and point clouds (.ply) per view"
         )
     print(f"metrics: {out / 'metrics.json'}")
     if renders:
@@ -209,7 +234,14 @@ def run(args: argparse.Namespace) -> dict:
         }
         if args.uncertainty:
             result["uncertainty"] = _uncertainty(
-                restored, chosen, chunk, out, temperature=args.temperature, renders=not args.no_renders
+                restored,
+                chosen,
+                chunk,
+                out,
+                temperature=args.temperature,
+                renders=not args.no_renders,
+                method=args.calibration,
+                split=args.split,
             )
         (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
         raise_if_interrupted()  # a Ctrl-C during the evaluation stops it before the replacement
@@ -231,7 +263,7 @@ def run(args: argparse.Namespace) -> dict:
 
 # What eval writes: a folder holding anything else is not replaced (`--out` may name a folder
 # of the user's).
-_EVAL_SUFFIXES = {".png", ".json", ".npz"}
+_EVAL_SUFFIXES = {".png", ".json", ".npz", ".npy", ".ply"}
 
 
 def _staging_folder(final: Path) -> Path:
@@ -273,17 +305,67 @@ def _put_in_place(staging: Path, final: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _uncertainty(restored: Run, views, chunk: int, out: Path, *, temperature: float, renders: bool) -> dict:
-    """The predictive pass over `views`: maps (PNGs unless `renders` is false, and arrays in
-    `uncertainty.npz`) and the calibration measures."""
+def _recalibration(restored: Run, chunk: int, *, method: str, temperature: float, split: str) -> Recalibration:
+    """`method` fitted on the scene's validation views (never on the views being scored)."""
+    if method == "raw":
+        return Recalibration.raw()
+    if split == "val":
+        raise ConfigError(
+            f"--calibration {method} is fitted on the validation views, so it cannot score them: "
+            "use --calibration raw with --split val"
+        )
+    dataset = restored.dataset
+    if dataset.val is None or dataset.val.num_views == 0:
+        raise ConfigError(
+            f"{dataset.name} has no validation views to calibrate the intervals on ({dataset.val_source}): "
+            "give --calibration raw for the model's own intervals"
+        )
+    try:
+        return fit_recalibration(
+            restored.model,
+            dataset.val,
+            dataset.near,
+            dataset.far,
+            method,
+            chunk=chunk,
+            temperature=temperature,
+            description=f"the {dataset.val.num_views} validation views",
+        )
+    except ValueError as error:  # too few calibration pixels for the masses
+        raise ConfigError(f"--calibration {method}: {error}") from None
+
+
+def _uncertainty(
+    restored: Run, views, chunk: int, out: Path, *, temperature: float, renders: bool, method: str, split: str
+) -> dict:
+    """The predictive pass over `views`, its intervals recalibrated by `method`: maps (PNGs
+    unless `renders` is false, arrays in `uncertainty.npz`, depth `.npy` and point clouds) and
+    the calibration measures."""
+    recalibration = _recalibration(restored, chunk, method=method, temperature=temperature, split=split)
     started = time.perf_counter()
     dataset = restored.dataset
-    maps = predict_views(restored.model, views, dataset.near, dataset.far, chunk, temperature=temperature)
+    maps = predict_views(
+        restored.model,
+        views,
+        dataset.near,
+        dataset.far,
+        chunk,
+        temperature=temperature,
+        masses=recalibration.masses,
+        levels=recalibration.interval_levels(),
+    )
     seconds = time.perf_counter() - started
     np.savez_compressed(out / "uncertainty.npz", view_ids=np.asarray(views.ids), **maps)
+    write_depth_exports(out, views, maps, near=dataset.near, far=dataset.far)
     if renders:
         write_uncertainty_maps(out, views, maps, near=dataset.near, far=dataset.far)
     report = calibration_report(maps, views.images, views.depths)
+    report["calibration"] = coverage_report(maps, views.images, views.depths, recalibration)
+    report["calibration"]["levels"] = recalibration.to_json()
+    # The model's own intervals, read from the distribution functions at the truths: the
+    # central interval of mass m covers a truth whose PIT value u has |2u - 1| <= m.
+    scores = np.abs(2.0 * maps["colour_cdf"].astype(np.float64) - 1.0)
+    report["raw_coverage"] = {f"{m:g}": float(np.mean(scores <= m)) for m in recalibration.masses}
     report["temperature"] = temperature
     report["seconds_per_frame"] = seconds / max(views.num_views, 1)
     return report
@@ -294,6 +376,10 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
     if args.temperature is not None and not args.uncertainty:
         raise ConfigError("--temperature scales the predictive distribution: it needs --uncertainty")
+    if args.calibration is not None and not args.uncertainty:
+        raise ConfigError("--calibration recalibrates the predictive intervals: it needs --uncertainty")
+    if args.calibration is None:
+        args.calibration = "conformal"
     if args.temperature is None:
         args.temperature = 1.0
     if not (math.isfinite(args.temperature) and np.finfo(np.float32).tiny <= args.temperature):

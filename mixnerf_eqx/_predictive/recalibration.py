@@ -1,0 +1,308 @@
+"""Recalibration of the predictive distribution, fitted on pixels the model did not train on.
+
+Everything here reads the probability integral transform (PIT) of held-out truths: `u =
+F(y)`, the predictive distribution function at the true value, per colour channel (and for
+the termination distance where the true depth is known). A calibrated model's PIT values
+are uniform on (0, 1); the central interval of mass `m` covers `y` exactly when `|2u - 1|
+<= m`, so interval coverage, the calibration error and both recalibrations are functions of
+the PIT values alone.
+
+- **Isotonic** (Kuleshov et al. 2018, as FlipNeRF recalibrates): the calibrated
+  distribution function is `A(F(y))`, where `A` is the isotonic regression of the empirical
+  frequency `#{u_i <= p} / n` on the predicted level `p` over the calibration pixels. Those
+  frequencies never decrease in `p`, so the regression is the calibration set's empirical
+  CDF of its PIT values, linear between points (as scikit-learn's `IsotonicRegression`
+  predicts between its fitted points); here it is kept at `ISOTONIC_KNOTS` quantiles.
+  Intervals move to the raw levels `A^-1((1 -+ m) / 2)`.
+- **Split conformal**: the score of a calibration pixel is `s = |2u - 1|`, the smallest
+  central mass of the raw distribution that covers its truth (a score the mixture
+  normalises: a wide mixture needs a small mass for a far truth). With `n` scores, the
+  interval of nominal mass `m` is the raw central interval of mass `q`, the
+  `ceil((n + 1) m)`-th smallest score: a new pixel exchangeable with the calibration pixels is
+  covered with probability at least `m` (and below `m + 1 / (n + 1)` without ties).
+
+Pixels of one view are correlated, and test views are not exchangeable with validation views
+in general: the guarantee is marginal over exchangeable pixels, which held-out views
+approximate; coverage is reported per view as well as pooled (`calibration_report`).
+"""
+
+import dataclasses
+import json
+import math
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from .distribution import DEFAULT_MASSES, IntervalLevels
+
+METHODS = ("raw", "isotonic", "conformal")
+
+# The isotonic map keeps this many quantiles of the calibration set's PIT values (plus the
+# ends 0 and 1): finer than any coverage figure reads, and small enough to store in JSON.
+ISOTONIC_KNOTS = 512
+
+# Interval levels stay inside float32's open unit interval: a conformal mass of 1 (a PIT value
+# that rounded to 0 or 1) becomes the widest interval the quantile solver can bracket.
+_LEVEL_FLOOR = 1e-6
+# How far past [0, 1] a float32 distribution function may round.
+_ROUNDING = 1e-4
+
+
+def _pit_array(pit, name: str) -> np.ndarray:
+    """`pit` as a float64 `(pixels, columns)` array of finite values in [0, 1]."""
+    values = np.asarray(pit, np.float64)
+    if values.ndim == 1:
+        values = values[:, None]
+    if values.ndim != 2:
+        raise ValueError(f"{name} must have shape (pixels,) or (pixels, channels), got {values.shape}")
+    # A float32 sum of coefficients may round a little past 1: that much is clipped.
+    if not np.all(np.isfinite(values)) or np.any(values < -_ROUNDING) or np.any(values > 1 + _ROUNDING):
+        bad = values[~(np.isfinite(values) & (values >= -_ROUNDING) & (values <= 1 + _ROUNDING))]
+        raise ValueError(f"{name} must hold distribution-function values in [0, 1], got {bad.ravel()[0]}")
+    return np.clip(values, 0.0, 1.0)
+
+
+def _check_masses(masses: Sequence[float]) -> tuple[float, ...]:
+    if isinstance(masses, str) or not isinstance(masses, Sequence) or not masses:
+        raise ValueError(f"masses must be a non-empty sequence of interval masses, got {masses!r}")
+    out = tuple(float(mass) for mass in masses)
+    bad = [mass for mass in out if not 0.0 < mass < 1.0]
+    if bad:
+        raise ValueError(f"interval masses must lie in (0, 1), got {bad[0]:g}")
+    return out
+
+
+def minimum_calibration_pixels(mass: float) -> int:
+    """The fewest calibration pixels that give the conformal interval of `mass` a finite end:
+    `ceil((n + 1) mass) <= n` holds from `n = ceil(mass / (1 - mass))` on."""
+    return max(1, math.ceil(mass / (1.0 - mass) - 1e-12))
+
+
+def conformal_masses(pit, masses: Sequence[float]) -> np.ndarray:
+    """The raw central masses whose intervals hold each nominal mass, per column of `pit`
+    (shape `(masses, columns)`): the `ceil((n + 1) m)`-th smallest score `|2u - 1|`."""
+    values = _pit_array(pit, "pit")
+    masses = _check_masses(masses)
+    count = values.shape[0]
+    needed = max(minimum_calibration_pixels(mass) for mass in masses)
+    if count < needed:
+        raise ValueError(
+            f"{count} calibration pixels are too few for conformal intervals of mass {max(masses):g}: at least "
+            f"{needed} are needed; calibrate on more validation views or pixels, or ask for smaller masses"
+        )
+    scores = np.sort(np.abs(2.0 * values - 1.0), axis=0)
+    ranks = [math.ceil((count + 1) * mass - 1e-9) for mass in masses]
+    return np.stack([scores[rank - 1] for rank in ranks])
+
+
+@dataclasses.dataclass(frozen=True)
+class IsotonicMap:
+    """A monotone map `A` of predicted levels to calibrated ones, per column (channel), linear
+    between knots: `A(knots[c, k]) = targets[k]`, from `A(0) = 0` to `A(1) = 1`."""
+
+    knots: np.ndarray  # (columns, K + 2), non-decreasing along the last axis
+    targets: np.ndarray  # (K + 2,), strictly increasing from 0 to 1
+
+    @staticmethod
+    def fit(pit, knots: int = ISOTONIC_KNOTS) -> "IsotonicMap":
+        """The isotonic regression of the empirical frequencies on the levels of `pit`."""
+        values = _pit_array(pit, "pit")
+        if values.shape[0] < 2:
+            raise ValueError(f"isotonic recalibration needs at least 2 calibration pixels, got {values.shape[0]}")
+        inner = np.linspace(0.0, 1.0, min(knots, values.shape[0]) + 2)[1:-1]
+        quantiles = np.quantile(values, inner, axis=0).T  # (columns, K)
+        columns = values.shape[1]
+        points = np.concatenate([np.zeros((columns, 1)), quantiles, np.ones((columns, 1))], axis=1)
+        return IsotonicMap(knots=np.maximum.accumulate(points, axis=1), targets=np.concatenate([[0.0], inner, [1.0]]))
+
+    @property
+    def columns(self) -> int:
+        return self.knots.shape[0]
+
+    def __call__(self, pit) -> np.ndarray:
+        """`A(u)` per column of `pit` (shape `(pixels, columns)`)."""
+        values = _pit_array(pit, "pit")
+        return np.stack([np.interp(values[:, c], self.knots[c], self.targets) for c in range(values.shape[1])], 1)
+
+    def inverse(self, level: float) -> np.ndarray:
+        """The raw level `p` with `A(p) = level`, per column."""
+        return np.array([np.interp(level, self.targets, self.knots[c]) for c in range(self.columns)])
+
+    def log_slope(self, pit) -> np.ndarray:
+        """`log A'(u)` per pixel and column: the log factor that the calibrated density
+        `A'(F(y)) f(y)` puts on the raw one (the slope of the segment holding `u`; a knot
+        shared by several quantiles, an atom of the PIT values, gives the steepest neighbour)."""
+        values = _pit_array(pit, "pit")
+        out = np.empty_like(values)
+        rise = np.diff(self.targets)
+        for c in range(values.shape[1]):
+            run = np.diff(self.knots[c])
+            with np.errstate(divide="ignore"):
+                slope = np.where(run > 0, rise / np.where(run > 0, run, 1.0), np.inf)
+            finite = slope[np.isfinite(slope)]
+            slope = np.where(np.isfinite(slope), slope, finite.max() if finite.size else 1.0)
+            segment = np.clip(np.searchsorted(self.knots[c], values[:, c], side="right") - 1, 0, run.size - 1)
+            out[:, c] = np.log(slope[segment])
+        return out
+
+
+def calibration_error(pit) -> np.ndarray:
+    """FlipNeRF's calibration error per column: with the PIT values sorted, the mean squared
+    gap between each value `p` and the fraction of values at or below it."""
+    values = np.sort(_pit_array(pit, "pit"), axis=0)
+    count = values.shape[0]
+    errors = []
+    for c in range(values.shape[1]):
+        column = values[:, c]
+        at_or_below = np.searchsorted(column, column, side="right") / count
+        errors.append(float(np.mean((column - at_or_below) ** 2)))
+    return np.asarray(errors)
+
+
+@dataclasses.dataclass(frozen=True)
+class Recalibration:
+    """How a model's intervals and distribution functions are recalibrated, and on what.
+
+    **Fields:**
+
+    - `method`: `"raw"` (the model's own), `"isotonic"` or `"conformal"`.
+    - `masses`: the nominal interval masses.
+    - `colour_lower`, `colour_upper`: `(masses, channels)` raw quantile levels of each interval.
+    - `depth_lower`, `depth_upper`: `(masses,)` the same for the termination distance.
+    - `colour_map`, `depth_map`: the isotonic maps (`None` unless isotonic; the depth's also
+      `None` where no true depth was known).
+    - `pixels`, `depth_pixels`: how many calibration pixels (with a known depth) it was fitted on.
+    - `fitted_on`: a line saying which views.
+    """
+
+    method: str
+    masses: tuple[float, ...]
+    colour_lower: np.ndarray
+    colour_upper: np.ndarray
+    depth_lower: np.ndarray
+    depth_upper: np.ndarray
+    colour_map: IsotonicMap | None = None
+    depth_map: IsotonicMap | None = None
+    pixels: int = 0
+    depth_pixels: int = 0
+    fitted_on: str = "nothing: the model's own intervals"
+
+    @staticmethod
+    def raw(masses: Sequence[float] = DEFAULT_MASSES, channels: int = 3) -> "Recalibration":
+        masses = _check_masses(masses)
+        lower = 0.5 * (1.0 - np.asarray(masses))
+        upper = 0.5 * (1.0 + np.asarray(masses))
+        return Recalibration(
+            "raw", masses, np.repeat(lower[:, None], channels, 1), np.repeat(upper[:, None], channels, 1), lower, upper
+        )
+
+    @staticmethod
+    def fit(
+        method: str,
+        colour_pit,
+        depth_pit=None,
+        masses: Sequence[float] = DEFAULT_MASSES,
+        *,
+        fitted_on: str = "calibration pixels",
+    ) -> "Recalibration":
+        """Fits `method` on calibration pixels' PIT values: `colour_pit` of shape `(pixels,
+        channels)`, and `depth_pit` of shape `(pixels,)` where true depths are known (the
+        depth intervals stay raw without them, or with fewer than the masses need: see
+        `depth_pixels`)."""
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+        masses = _check_masses(masses)
+        colour = _pit_array(colour_pit, "colour_pit")
+        depth = None if depth_pit is None else _pit_array(depth_pit, "depth_pit")
+        if colour.shape[0] == 0:
+            raise ValueError("no calibration pixels: calibrate on at least one validation view")
+        raw = Recalibration.raw(masses, colour.shape[1])
+        if method == "raw":
+            return dataclasses.replace(raw, pixels=colour.shape[0], fitted_on=fitted_on)
+        depth_count = 0 if depth is None else depth.shape[0]
+        if method == "isotonic":
+            colour_map = IsotonicMap.fit(colour)
+            depth_map = IsotonicMap.fit(depth) if depth_count >= 2 else None
+            colour_lower = np.stack([colour_map.inverse(0.5 * (1 - m)) for m in masses])
+            colour_upper = np.stack([colour_map.inverse(0.5 * (1 + m)) for m in masses])
+            depth_lower, depth_upper = raw.depth_lower, raw.depth_upper
+            if depth_map is not None:
+                depth_lower = np.array([depth_map.inverse(0.5 * (1 - m))[0] for m in masses])
+                depth_upper = np.array([depth_map.inverse(0.5 * (1 + m))[0] for m in masses])
+        else:
+            colour_map = depth_map = None
+            spread = conformal_masses(colour, masses)
+            colour_lower, colour_upper = 0.5 * (1.0 - spread), 0.5 * (1.0 + spread)
+            depth_lower, depth_upper = raw.depth_lower, raw.depth_upper
+            if depth_count and depth_count >= max(minimum_calibration_pixels(m) for m in masses):
+                depth_spread = conformal_masses(depth, masses)[:, 0]
+                depth_lower, depth_upper = 0.5 * (1.0 - depth_spread), 0.5 * (1.0 + depth_spread)
+        clip = lambda x: np.clip(x, _LEVEL_FLOOR, 1.0 - _LEVEL_FLOOR)  # noqa: E731
+        return Recalibration(
+            method,
+            masses,
+            clip(colour_lower),
+            clip(colour_upper),
+            clip(depth_lower),
+            clip(depth_upper),
+            colour_map,
+            depth_map,
+            pixels=colour.shape[0],
+            depth_pixels=depth_count,
+            fitted_on=fitted_on,
+        )
+
+    def interval_levels(self) -> IntervalLevels:
+        """The levels `predict_rays` and `summarise` bound the intervals with."""
+        return IntervalLevels(
+            colour_lower=jnp.asarray(self.colour_lower, jnp.float32),
+            colour_upper=jnp.asarray(self.colour_upper, jnp.float32),
+            depth_lower=jnp.asarray(self.depth_lower, jnp.float32),
+            depth_upper=jnp.asarray(self.depth_upper, jnp.float32),
+        )
+
+    def calibrated_pit(self, colour_pit) -> np.ndarray:
+        """The recalibrated distribution function at the truths: `A(u)` for isotonic; the PIT
+        values unchanged otherwise (conformal moves intervals, not the distribution)."""
+        values = _pit_array(colour_pit, "colour_pit")
+        return self.colour_map(values) if self.colour_map is not None else values
+
+    def to_json(self) -> dict:
+        def listed(x):
+            return None if x is None else np.asarray(x).tolist()
+
+        return {
+            "method": self.method,
+            "masses": list(self.masses),
+            "colour_lower": listed(self.colour_lower),
+            "colour_upper": listed(self.colour_upper),
+            "depth_lower": listed(self.depth_lower),
+            "depth_upper": listed(self.depth_upper),
+            "colour_map": None if self.colour_map is None else {"knots": listed(self.colour_map.knots), "targets": listed(self.colour_map.targets)},
+            "depth_map": None if self.depth_map is None else {"knots": listed(self.depth_map.knots), "targets": listed(self.depth_map.targets)},
+            "pixels": self.pixels,
+            "depth_pixels": self.depth_pixels,
+            "fitted_on": self.fitted_on,
+        }
+
+    @staticmethod
+    def from_json(data: dict | str) -> "Recalibration":
+        data = json.loads(data) if isinstance(data, str) else data
+
+        def isotonic(entry):
+            return None if entry is None else IsotonicMap(np.asarray(entry["knots"]), np.asarray(entry["targets"]))
+
+        return Recalibration(
+            data["method"],
+            tuple(data["masses"]),
+            np.asarray(data["colour_lower"]),
+            np.asarray(data["colour_upper"]),
+            np.asarray(data["depth_lower"]),
+            np.asarray(data["depth_upper"]),
+            isotonic(data["colour_map"]),
+            isotonic(data["depth_map"]),
+            int(data["pixels"]),
+            int(data["depth_pixels"]),
+            data["fitted_on"],
+        )

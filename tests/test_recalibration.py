@@ -1,0 +1,243 @@
+"""Recalibrated intervals (isotonic and split conformal), FlipNeRF's calibration measures, and
+what eval writes for a user to take away (depth arrays, point clouds).
+
+References: predictive distributions whose truth is known (Laplace and Laplace-mixture draws
+in numpy, float64), the closed-form coverage of a split-conformal interval (`k / (n + 1)`),
+a direct loop for the calibration error, and a plane whose world depth is known for the NDC
+conversion.
+"""
+
+import dataclasses
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import mixnerf_eqx as mx
+from mixnerf_eqx._predictive.exports import world_points
+from mixnerf_eqx._predictive.recalibration import (
+    IsotonicMap,
+    Recalibration,
+    calibration_error,
+    conformal_masses,
+    minimum_calibration_pixels,
+)
+from mixnerf_eqx.data import Views
+
+MASSES = (0.5, 0.8, 0.9, 0.95)
+
+
+def laplace_cdf(x, location, scale):
+    z = (x - location) / scale
+    return np.where(z < 0, 0.5 * np.exp(np.minimum(z, 0)), 1 - 0.5 * np.exp(-np.maximum(z, 0)))
+
+
+def too_narrow_pit(rng, count):
+    """PIT values of Laplace(0, 1) truths under a model that predicts Laplace(0, 0.5) in each of
+    three channels: intervals twice too narrow."""
+    return laplace_cdf(rng.laplace(0.0, 1.0, (count, 3)), 0.0, 0.5)
+
+
+def covered(pit, recalibration, index):
+    return np.mean((pit >= recalibration.colour_lower[index]) & (pit <= recalibration.colour_upper[index]))
+
+
+def test_recalibrated_intervals_hold_their_mass_where_the_raw_ones_do_not():
+    rng = np.random.default_rng(0)
+    calibration, test = too_narrow_pit(rng, 4000), too_narrow_pit(rng, 200_000)
+    raw = Recalibration.fit("raw", calibration)
+    for method in ("isotonic", "conformal"):
+        fitted = Recalibration.fit(method, calibration, masses=MASSES)
+        for index, mass in enumerate(MASSES):
+            # The calibration set's own sampling error dominates: sd sqrt(m (1 - m) / 4000).
+            tolerance = 4.0 * math.sqrt(mass * (1 - mass) / 4000)
+            assert abs(covered(test, fitted, index) - mass) < tolerance, (method, mass)
+    for index, mass in enumerate(MASSES):
+        # Laplace(0, 1) inside the central interval of Laplace(0, 0.5): 1 - (1 - m)^(1/2).
+        expected = 1.0 - math.sqrt(1.0 - mass)
+        assert abs(covered(test, raw, index) - expected) < 0.01
+        assert covered(test, raw, index) < mass - 0.1  # the check above can fail
+
+
+def test_split_conformal_coverage_is_k_over_n_plus_one():
+    # With n = 10 calibration scores and mass 0.9, the interval ends at the 10th smallest
+    # score: a new exchangeable pixel is covered with probability exactly 10 / 11. The
+    # empirical 90% quantile (the 9th) would cover 9 / 11 = 0.818.
+    rng = np.random.default_rng(1)
+    trials = 40_000
+    calibration = rng.uniform(size=(trials, 10))
+    new = rng.uniform(size=trials)
+    hits = np.empty(trials, bool)
+    for trial in range(trials):
+        spread = conformal_masses(calibration[trial], (0.9,))[0, 0]
+        hits[trial] = abs(2 * new[trial] - 1) <= spread
+    assert abs(hits.mean() - 10 / 11) < 4 * math.sqrt((10 / 11) * (1 / 11) / trials)
+
+
+def test_too_few_calibration_pixels_and_bad_masses_are_clear_errors():
+    assert minimum_calibration_pixels(0.95) == 19 and minimum_calibration_pixels(0.5) == 1
+    with pytest.raises(ValueError, match="18 calibration pixels are too few .* at least 19"):
+        Recalibration.fit("conformal", np.full((18, 3), 0.5))
+    Recalibration.fit("conformal", np.full((19, 3), 0.5))
+    for masses in ((0.5, 1.0), (0.0,), (), (-0.2,)):
+        with pytest.raises(ValueError, match="interval mass"):
+            Recalibration.fit("isotonic", np.full((50, 3), 0.5), masses=masses)
+    with pytest.raises(ValueError, match="method must be one of"):
+        Recalibration.fit("platt", np.full((50, 3), 0.5))
+    with pytest.raises(ValueError, match=r"values in \[0, 1\]"):
+        Recalibration.fit("conformal", np.array([[0.5, np.nan, 0.5]] * 30))
+    with pytest.raises(ValueError, match="no calibration pixels"):
+        Recalibration.fit("isotonic", np.zeros((0, 3)))
+
+
+def test_calibration_error_follows_flipnerfs_definition():
+    rng = np.random.default_rng(2)
+    pit = np.round(rng.uniform(size=(300, 2)), 2)  # ties on purpose
+    for column in range(2):
+        values = np.sort(pit[:, column])
+        # A direct loop: the fraction of values at or below each value.
+        frequencies = np.array([np.sum(values <= value) / values.size for value in values])
+        expected = np.mean((values - frequencies) ** 2)
+        assert abs(calibration_error(pit)[column] - expected) < 1e-15
+    # Uniform values are calibrated: the error is O(1 / n).
+    assert calibration_error(np.arange(1, 1001) / 1001.0)[0] < 1e-6
+    assert calibration_error(too_narrow_pit(rng, 5000))[0] > 5e-3
+
+
+def test_isotonic_map_recovers_the_true_density():
+    rng = np.random.default_rng(3)
+    calibration, test_truth = rng.laplace(0.0, 1.0, (100_000, 1)), rng.laplace(0.0, 1.0, (100_000, 1))
+    fitted = IsotonicMap.fit(laplace_cdf(calibration, 0.0, 0.5))
+    pit = laplace_cdf(test_truth, 0.0, 0.5)
+    raw_nll = -np.mean(np.log(np.exp(-np.abs(test_truth) / 0.5) / (2 * 0.5)))
+    calibrated_nll = raw_nll - np.mean(fitted.log_slope(pit))
+    true_nll = 1.0 + math.log(2.0)  # the entropy of Laplace(0, 1)
+    assert abs(raw_nll - 2.0) < 0.02
+    assert abs(calibrated_nll - true_nll) < 0.03
+    # A and its inverse agree, and A maps the PIT values to nearly uniform ones.
+    assert np.allclose(fitted(fitted.inverse(0.3)[None, :]), 0.3, atol=1e-9)
+    assert calibration_error(fitted(pit))[0] < 1e-4
+
+
+def test_the_mixtures_distribution_functions_match_float64(tmp_path):
+    from test_predictive import as_mixture, draw, np_channel_cdf, np_log_density, random_mixtures
+
+    rng = np.random.default_rng(4)
+    coefficients, location, scale = random_mixtures(rng, 200, 5)
+    truth = draw(rng, coefficients, location, scale, 1)[:, 0]
+    mixture = as_mixture(coefficients, location, scale)
+    cdf = np.asarray(mixture.cdf(jnp.asarray(truth, jnp.float32)))
+    channel = np.asarray(mixture.channel_log_prob(jnp.asarray(truth, jnp.float32)))
+    for c in range(3):
+        reference = np.array([np_channel_cdf(truth[r, c], coefficients[r], location[r, :, c], scale[r, :, c]) for r in range(200)])
+        np.testing.assert_allclose(cdf[:, c], reference, atol=2e-6)
+        one_channel = np.stack([truth[:, c]] * 3, axis=-1)
+        # The marginal density of channel c: the joint density of a 1-channel mixture.
+        marginal = np_log_density(one_channel[:, None, :1], coefficients[:, None], location[:, None, :, c : c + 1], scale[:, None, :, c : c + 1])[:, 0]
+        np.testing.assert_allclose(channel[:, c], marginal, rtol=2e-5, atol=2e-5)
+    # Per-channel levels: each channel's quantile at its own level inverts its CDF.
+    levels = jnp.asarray([[0.1, 0.5, 0.9], [0.3, 0.05, 0.7]], jnp.float32)
+    quantiles = np.asarray(mixture.channel_quantiles(levels))
+    for row in range(2):
+        back = np.asarray(mixture.cdf(jnp.asarray(quantiles[row])))
+        np.testing.assert_allclose(back, np.broadcast_to(levels[row], back.shape), atol=2e-5)
+
+
+def test_the_termination_distance_cdf_is_piecewise_linear():
+    weights = jnp.asarray([[0.0, 0.5, 0.25, 0.25]], jnp.float32)
+    edges = jnp.asarray([[1.0, 2.0, 3.0, 4.0, 5.0]], jnp.float32)
+    depth = mx.TerminationDistribution(weights, edges)
+    at = jnp.asarray([[2.5]], jnp.float32)[:, 0]
+    assert float(depth.cdf(at)[0]) == pytest.approx(0.25)
+    assert float(depth.cdf(jnp.asarray([jnp.inf]))[0]) == 1.0
+    assert float(depth.cdf(jnp.asarray([0.0]))[0]) == 0.0
+    with pytest.raises(ValueError, match="one distance per ray"):
+        depth.cdf(jnp.zeros((2,)))
+
+
+def test_ndc_depth_maps_back_to_the_world_plane_it_came_from():
+    # A camera at the origin looking down -z; an NDC depth t everywhere is the world plane
+    # z = -1 / (1 - t) (near plane 1): t = 0.8 is the plane z = -5, a camera z-depth of 5.
+    height, width, focal = 6, 8, 7.0
+    pose = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)[None]
+    views = Views(images=np.zeros((1, height, width, 3), np.float32), camtoworlds=pose, focal=focal, ndc=True)
+    points, depth = world_points(views, 0, np.full((height, width), 0.8), 0.0, 1.0)
+    np.testing.assert_allclose(points[..., 2], -5.0, rtol=1e-6)
+    np.testing.assert_allclose(depth, 5.0, rtol=1e-6)
+    # Each point lies on its pixel's ray from the camera: x / z = (u - W/2) / (-f).
+    u = np.arange(width) + 0.5 - width / 2
+    np.testing.assert_allclose(points[0, :, 0] / points[0, :, 2], -u / focal, rtol=1e-5, atol=1e-7)
+    # A bounded scene's depth is a distance along the unnormalised camera direction already.
+    bounded = dataclasses.replace(views, ndc=False)
+    _, plain = world_points(bounded, 0, np.full((height, width), 3.0), 2.0, 6.0)
+    np.testing.assert_allclose(plain, 3.0, rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory, tiny_scene):
+    from helpers import TINY_OVERRIDES
+
+    config = mx.load_config("builtin", TINY_OVERRIDES)
+    run_dir = tmp_path_factory.mktemp("recalibration") / "run"
+    config = dataclasses.replace(
+        config, train=dataclasses.replace(config.train, run_dir=str(run_dir), max_steps=60, eval_every=0)
+    )
+    mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False)
+    return run_dir
+
+
+def test_eval_recalibrates_on_validation_views_and_exports_depth_and_points(short_run, tiny_scene, tmp_path, capsys):
+    trimesh = pytest.importorskip("trimesh")
+    from mixnerf_eqx.cli.eval import main as eval_main
+
+    out = tmp_path / "eval"
+    common = [str(short_run), "--max-views", "2", "--no-lpips", "--no-progress", "--no-renders"]
+    assert eval_main([*common, "--out", str(out), "--uncertainty"]) == 0
+    printed = capsys.readouterr().out
+    assert "conformal intervals (fitted on the" in printed and "validation views" in printed
+    report = json.loads((out / "metrics.json").read_text())["uncertainty"]
+    calibration = report["calibration"]
+    assert calibration["method"] == "conformal" and set(calibration["colour_coverage"]) == {"0.5", "0.8", "0.9", "0.95"}
+    assert calibration["depth_coverage"] is not None  # the built-in scene knows its depth
+    assert set(report["raw_coverage"]) == set(calibration["colour_coverage"])
+    restored = Recalibration.from_json(calibration["levels"])
+    assert restored.method == "conformal" and restored.pixels > 0
+    arrays = np.load(out / "uncertainty.npz")
+    view = int(arrays["view_ids"][0])
+    depth = np.load(out / f"test_{view:03d}_depth.npy")
+    interval = np.load(out / f"test_{view:03d}_depth_interval.npy")
+    assert depth.dtype == np.float32 and depth.shape == (tiny_scene.test.height, tiny_scene.test.width)
+    assert interval.shape == (4, 2, *depth.shape)
+    assert np.all(interval[:, 0] <= depth + 1e-4) and np.all(depth <= interval[:, 1] + 1e-4)
+    # A standard reader sees the points, their colours and their uncertainty.
+    cloud = trimesh.load(out / f"test_{view:03d}_points.ply")
+    vertices = cloud.metadata["_ply_raw"]["vertex"]["data"]
+    assert {"x", "y", "z", "red", "green", "blue", "depth_lower", "depth_upper", "colour_std"} <= set(vertices.dtype.names)
+    assert len(cloud.vertices) == int(np.sum(arrays["acc"][0] >= 0.5))
+    if len(vertices):
+        assert np.all(vertices["depth_lower"] <= vertices["depth_upper"])
+
+    isotonic = tmp_path / "isotonic"
+    assert eval_main([*common, "--out", str(isotonic), "--uncertainty", "--calibration", "isotonic"]) == 0
+    assert json.loads((isotonic / "metrics.json").read_text())["uncertainty"]["calibration"]["method"] == "isotonic"
+    # Calibrating on the views being scored, or without the predictive pass: refused.
+    assert eval_main([*common, "--out", str(tmp_path / "v"), "--uncertainty", "--split", "val"]) == 2
+    assert "cannot score them" in capsys.readouterr().err
+    assert eval_main([*common, "--out", str(tmp_path / "w"), "--calibration", "raw"]) == 2
+    assert "needs --uncertainty" in capsys.readouterr().err
+    assert eval_main([*common, "--out", str(tmp_path / "r"), "--uncertainty", "--split", "val", "--calibration", "raw"]) == 0
+
+
+def test_recalibration_round_trips_through_json_and_recompiles_nothing():
+    rng = np.random.default_rng(5)
+    fitted = Recalibration.fit("isotonic", too_narrow_pit(rng, 500), rng.uniform(size=200), masses=MASSES)
+    again = Recalibration.from_json(json.dumps(fitted.to_json()))
+    for name in ("colour_lower", "colour_upper", "depth_lower", "depth_upper"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(fitted, name))
+    np.testing.assert_array_equal(again.colour_map.knots, fitted.colour_map.knots)
+    levels = fitted.interval_levels()
+    assert levels.colour_lower.shape == (4, 3) and levels.depth_lower.shape == (4,)
+    assert jax.tree_util.tree_structure(levels) == jax.tree_util.tree_structure(mx.IntervalLevels.raw(MASSES))
