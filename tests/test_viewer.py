@@ -219,6 +219,28 @@ def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeyp
         preview_image(model, viewer_rays(camera, 64, tiny_scene), "normals", 2.0, 6.0)
 
 
+def test_interval_modes_show_the_recalibrated_intervals(tiny_config, tiny_scene):
+    from mixnerf_eqx._predictive.recalibration import Recalibration
+
+    model = mx.init_train_state(tiny_config, tiny_scene).model
+    rays = viewer_rays(camera_of_view(tiny_scene.test, 0), 32, tiny_scene)
+    own = Recalibration.raw((0.9,))
+    # An untrained model's intervals are wide (its colour ones beyond the colour scale's top):
+    # a 2% central interval stands for a recalibration that narrows them.
+    narrower = dataclasses.replace(
+        own,
+        colour_lower=np.full((1, 3), 0.49),
+        colour_upper=np.full((1, 3), 0.51),
+        depth_lower=np.array([0.49]),
+        depth_upper=np.array([0.51]),
+    )
+    for mode in ("colour 90% interval", "depth 90% interval"):
+        default = preview_image(model, rays, mode, tiny_scene.near, tiny_scene.far)
+        assert default.shape == (32, 32, 3)
+        assert np.array_equal(default, preview_image(model, rays, mode, tiny_scene.near, tiny_scene.far, None, own))
+        assert not np.array_equal(default, preview_image(model, rays, mode, tiny_scene.near, tiny_scene.far, None, narrower))
+
+
 def test_the_server_shows_every_camera_renders_and_stops(tiny_config, tiny_scene):
     model = mx.init_train_state(tiny_config, tiny_scene).model
     viewer = Viewer(model, tiny_scene, port=0, max_width=128)
@@ -292,6 +314,8 @@ def test_the_view_command_prints_its_address_and_stops_on_ctrl_c(tiny_config, ti
         while not any("viewer of" in line for line in lines) and process.poll() is None:
             lines.append(process.stdout.readline())  # viser's banner, then the command's line
         assert any("viewer of" in line and "http://127.0.0.1:" in line for line in lines), lines
+        # The interval modes show conformal intervals fitted on the scene's validation views.
+        assert any("interval modes: conformal intervals fitted on the 4 validation views" in line for line in lines)
         process.send_signal(signal.SIGINT)
         _, err = process.communicate(timeout=60)
     finally:

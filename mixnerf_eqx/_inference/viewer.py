@@ -25,6 +25,7 @@ from jaxtyping import Bool, Float
 
 from .._nn.model import MixNeRF
 from .._nn.rays import RayBundle, camera_rays
+from .._predictive.recalibration import Recalibration
 from .._predictive.uncertainty import predict_rays
 from .._util.images import colourise_depth, to_uint8
 from ..data import Dataset, Views
@@ -35,9 +36,12 @@ from .evaluation import render_rays
 PREVIEW_WIDTHS = (64, 128, 256, 512)
 # Rays per compiled render call: every preview (at least 64 x 32 pixels) fills one or more.
 PREVIEW_CHUNK = 2048
-MODES = ("colour", "depth", "opacity", "colour spread", "depth spread")
+MODES = ("colour", "depth", "opacity", "colour spread", "depth spread", "colour 90% interval", "depth 90% interval")
 # The modes that read the predictive distribution: MixNeRF runs only.
-SPREAD_MODES = ("colour spread", "depth spread")
+SPREAD_MODES = ("colour spread", "depth spread", "colour 90% interval", "depth 90% interval")
+# The interval modes show the width of the interval of this mass (recalibrated if the viewer
+# was given a `Recalibration`; the nearest mass it has otherwise).
+INTERVAL_MASS = 0.9
 # The colour spread (a standard deviation of colour in [0, 1]) shown from 0 to this.
 COLOUR_SPREAD_MAX = 0.25
 
@@ -146,31 +150,45 @@ def preview_image(
     near: float,
     far: float,
     visible: Bool[np.ndarray, "height width"] | None = None,
+    recalibration: Recalibration | None = None,
 ) -> np.ndarray:
     """One preview of `rays` (batch shape `(height, width)`) as 8-bit RGB: the colour, the
     depth coloured from `near` (yellow) to `far` (blue), the opacity in grey, or the predictive
     distribution's colour spread (its standard deviation, mean over channels, from 0 to
-    `COLOUR_SPREAD_MAX`) or depth spread (from 0 to a quarter of `far - near`). Pixels where
-    `visible` is false (`scene_facing`) are black."""
+    `COLOUR_SPREAD_MAX`) or depth spread (from 0 to a quarter of `far - near`), or the width
+    of its 90% colour interval (mean over channels, from 0 to `4 COLOUR_SPREAD_MAX`) or depth
+    interval (from 0 to `far - near`), recalibrated by `recalibration` (the model's own
+    intervals without one). Pixels where `visible` is false (`scene_facing`) are black."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    image = _preview(model, rays, mode, near, far)
+    image = _preview(model, rays, mode, near, far, recalibration)
     if visible is not None:
         image = np.where(visible[..., None], image, np.uint8(0))
     return image
 
 
-def _preview(model: MixNeRF, rays: RayBundle, mode: str, near: float, far: float) -> np.ndarray:
+def _preview(
+    model: MixNeRF, rays: RayBundle, mode: str, near: float, far: float, recalibration: Recalibration | None
+) -> np.ndarray:
     height, width = rays.batch_shape
     flat = _padded(rays, PREVIEW_CHUNK)
     if mode in SPREAD_MODES:
         if model.mixture is None:
             raise ValueError(f"{mode!r} needs a MixNeRF model (a mip-NeRF baseline has no mixture)")
-        summary = predict_rays(model, flat, PREVIEW_CHUNK)
+        levels = recalibration or Recalibration.raw((INTERVAL_MASS,))
+        summary = predict_rays(
+            model, flat, PREVIEW_CHUNK, masses=levels.masses, levels=levels.interval_levels()
+        )
+        chosen = int(np.argmin(np.abs(np.asarray(levels.masses) - INTERVAL_MASS)))
         if mode == "colour spread":
             spread, top = np.mean(summary["colour_std"], axis=-1), COLOUR_SPREAD_MAX
-        else:
+        elif mode == "depth spread":
             spread, top = summary["depth_std"], 0.25 * (far - near)
+        elif mode == "colour 90% interval":
+            widths = summary["colour_upper"][chosen] - summary["colour_lower"][chosen]
+            spread, top = np.mean(widths, axis=-1), 4.0 * COLOUR_SPREAD_MAX
+        else:
+            spread, top = summary["depth_upper"][chosen] - summary["depth_lower"][chosen], far - near
         image = colourise_depth(spread[: height * width].reshape(height, width), 0.0, top)
         return to_uint8(image)
     rendered = render_rays(model, flat, PREVIEW_CHUNK)
@@ -229,6 +247,8 @@ class Viewer:
     - `max_width`: the finest preview width (one of `PREVIEW_WIDTHS`).
     - `mixture`: offer the predictive spreads (default: whether `model` has a mixture; give it
       when `model` is `None` until the first `update`).
+    - `recalibration`: the intervals the interval modes show (`mx.fit_recalibration` on the
+      scene's validation views; the model's own without one).
     """
 
     def __init__(
@@ -242,6 +262,7 @@ class Viewer:
         training: bool = False,
         refresh_s: float = 2.0,
         mixture: bool | None = None,
+        recalibration: Recalibration | None = None,
     ):
         import viser
 
@@ -250,6 +271,7 @@ class Viewer:
         self.dataset = dataset
         self.widths = tuple(width for width in PREVIEW_WIDTHS if width <= max_width)
         self.refresh_s = refresh_s
+        self.recalibration = recalibration
         self.frames = 0  # previews sent, over all clients
         self.frame_seconds: dict[int, float] = {}  # the last preview's time per width
         self._model, self._version, self._step = model, 0, None
@@ -348,7 +370,9 @@ class Viewer:
         dataset = self.dataset
         rays = viewer_rays(camera, width, dataset)
         visible = scene_facing(camera, width, dataset)
-        image = preview_image(model, rays, mode or self.mode.value, dataset.near, dataset.far, visible)
+        image = preview_image(
+            model, rays, mode or self.mode.value, dataset.near, dataset.far, visible, self.recalibration
+        )
         self.frame_seconds[width] = time.perf_counter() - started
         return image
 

@@ -162,8 +162,13 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
             for mass, value in calibrated["colour_coverage"].items()
         )
         depth = "n/a" if report["depth_ause"] is None else f"{report['depth_ause']:.4f}"
+        how = (
+            "the model's own intervals"
+            if calibrated["method"] == "raw"
+            else f"{calibrated['method']} intervals (fitted on {calibrated['fitted_on']})"
+        )
         print(
-            f"uncertainty: {calibrated['method']} intervals (fitted on {calibrated['fitted_on']}), colour "
+            f"uncertainty: {how}, colour "
             f"coverage {coverage}; calibration error {calibrated['calibration_error']:.4f}, NLL "
             f"{calibrated['nll_per_channel']:.3f} per channel; AUSE colour {report['colour_ause']:.4f}, depth "
             f"{depth}; {report['seconds_per_frame']:.2f} s per frame; arrays: {out / 'uncertainty.npz'}, "

@@ -13,6 +13,8 @@ import sys
 import time
 
 from .._inference.viewer import PREVIEW_WIDTHS, Viewer
+from .._predictive.recalibration import METHODS, Recalibration
+from .._predictive.uncertainty import fit_recalibration
 from .._train.run_folder import restore_run
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.interrupt import raise_if_interrupted
@@ -82,10 +84,40 @@ def check_viewer_installed() -> None:
         raise ValueError(VIEWER_EXTRA) from None
 
 
+def viewer_recalibration(run, method: str) -> Recalibration | None:
+    """The intervals the viewer's interval modes show: `method` fitted on the run's validation
+    views, said in one line; `None` (the model's own) for a baseline, `raw`, or a scene without
+    validation views."""
+    dataset = run.dataset
+    if run.model.mixture is None or method == "raw":
+        return None
+    if dataset.val is None or dataset.val.num_views == 0:
+        print(f"{dataset.name} has no validation views: the interval modes show the model's own intervals")
+        return None
+    recalibration = fit_recalibration(
+        run.model,
+        dataset.val,
+        dataset.near,
+        dataset.far,
+        method,
+        chunk=run.config.train.render_chunk,
+        description=f"the {dataset.val.num_views} validation views",
+    )
+    print(f"interval modes: {method} intervals fitted on {recalibration.fitted_on}")
+    return recalibration
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.view", description=__doc__.split("\n")[0])
     add_run_arguments(parser)
     add_viewer_arguments(parser)
+    parser.add_argument(
+        "--calibration",
+        choices=METHODS,
+        default="conformal",
+        help="the intervals the interval modes show, fitted on the scene's validation views: conformal "
+        "(the default), isotonic, or raw (the model's own; also where the scene has no validation views)",
+    )
     add_typecheck_argument(parser)
     add_compilation_cache_argument(parser)
     return parser.parse_args(argv)
@@ -98,7 +130,15 @@ def main(argv: list[str] | None = None) -> int:
         check_viewer_installed()
         check_host(args.host)
         run = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
-        viewer = Viewer(run.model, run.dataset, host=args.host, port=args.port, max_width=args.max_width)
+        recalibration = viewer_recalibration(run, args.calibration)
+        viewer = Viewer(
+            run.model,
+            run.dataset,
+            host=args.host,
+            port=args.port,
+            max_width=args.max_width,
+            recalibration=recalibration,
+        )
         where = serving_line(viewer, args.port)
         print(f"viewer of {args.run_dir} (step {run.step}): {where}  (Ctrl-C to stop)", flush=True)
         try:
