@@ -107,6 +107,9 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._predictive.distribution import summarise as summarise
     from ._predictive.exports import world_points as world_points
     from ._predictive.exports import write_depth_exports as write_depth_exports
+    from ._predictive.next_view import ViewRanking as ViewRanking
+    from ._predictive.next_view import farthest_first as farthest_first
+    from ._predictive.next_view import next_view as next_view
     from ._predictive.recalibration import Recalibration as Recalibration
     from ._predictive.uncertainty import Sparsification as Sparsification
     from ._predictive.uncertainty import calibration_pit as calibration_pit

@@ -566,7 +566,7 @@ def test_a_downscale_that_leaves_images_too_small_to_score_is_refused_before_tra
     assert not (tmp_path / "run").exists()  # refused before anything was written
 
 
-@pytest.mark.parametrize("command", ["train", "eval", "render", "sweep", "view"])
+@pytest.mark.parametrize("command", ["train", "eval", "render", "sweep", "view", "next_view"])
 def test_a_ctrl_c_while_a_command_loads_its_modules_is_status_130_without_a_traceback(
     command, monkeypatch, capsys
 ):

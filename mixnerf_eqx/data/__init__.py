@@ -25,4 +25,5 @@ from ._splits import evenly_spaced as evenly_spaced
 from .blender import load_blender as load_blender
 from .dtu import load_dtu as load_dtu
 from .llff import load_llff as load_llff
+from .procedural import builtin_views_at as builtin_views_at
 from .transforms import load_transforms as load_transforms

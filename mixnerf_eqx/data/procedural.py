@@ -13,6 +13,8 @@ and the occlusions make the geometry ambiguous from a few views, which is what a
 NeRF has to cope with.
 """
 
+from collections.abc import Sequence
+
 import numpy as np
 from jaxtyping import Float
 
@@ -415,6 +417,30 @@ def _val_poses(train_poses: np.ndarray, test_poses: np.ndarray, num_views: int) 
         chosen.append(pick)
         nearest = np.minimum(nearest, _angles_deg(candidates, candidates[pick : pick + 1])[:, 0])
     return _orbit_poses(azimuths[chosen], elevations[chosen])
+
+
+def builtin_views_at(
+    azimuths_deg: Sequence[float] | Float[np.ndarray, " num_views"],
+    elevations_deg: Sequence[float] | Float[np.ndarray, " num_views"],
+    *,
+    resolution: int = 64,
+    first_id: int = 1000,
+) -> Views:
+    """The built-in scene seen from cameras on its orbit (4 units from the origin, looking at
+    the scene, as every built-in camera does) at the given azimuths and elevations in degrees:
+    images and true depths, numbered from `first_id`. Candidate views to capture next."""
+    if len(azimuths_deg) != len(elevations_deg) or not len(azimuths_deg):
+        raise ValueError("give one elevation per azimuth, at least one camera")
+    _check_count(resolution, "resolution", 8, 4096)
+    poses = _orbit_poses(np.deg2rad(np.asarray(azimuths_deg, np.float64)), np.deg2rad(np.asarray(elevations_deg, np.float64)))
+    images, depths = _render(poses, resolution)
+    return Views(
+        images=images.astype(np.float32),
+        camtoworlds=poses.astype(np.float32),
+        focal=_focal(resolution),
+        depths=depths.astype(np.float32),
+        ids=tuple(range(first_id, first_id + len(poses))),
+    )
 
 
 def split_angles(dataset: Dataset) -> dict[str, np.ndarray]:
