@@ -366,9 +366,22 @@ def _setting(config: "Config", key: str) -> Any:
 FIELD_SECTIONS = {"mlp": "mlp", "grid": "grid"}
 
 
+# Grid keys that only one encoding reads: set for the other, they would be ignored.
+ENCODING_KEYS = {"hash_table_log2": "hash", "tv_weight": "triplane"}
+
+
 def _inapplicable(config: "Config") -> list[str]:
-    """The keys set in the section of a field that `model.field` does not choose."""
+    """The keys set in the section of a field that `model.field` does not choose, and the grid
+    keys set for an encoding that does not read them."""
     problems = []
+    if config.model.field == "grid":
+        grid, defaults = config.grid, GridConfig()
+        for name, encoding in ENCODING_KEYS.items():
+            if grid.encoding != encoding and getattr(grid, name) != getattr(defaults, name):
+                problems.append(
+                    f"grid.{name} = {getattr(grid, name)!r} applies to grid.encoding = {encoding!r} only, and "
+                    f"this config uses {grid.encoding!r}: remove it (or set it to {getattr(defaults, name)!r})"
+                )
     for field, section in FIELD_SECTIONS.items():
         if field == config.model.field:
             continue

@@ -216,6 +216,13 @@ def test_each_field_reads_its_own_section_and_a_key_of_another_field_is_an_error
     (tmp_path / "mixed.toml").write_text('[model]\nfield = "grid"\n[mlp]\ndepth = 3\n')
     with pytest.raises(ConfigError, match="mlp.depth = 3"):
         load_config(tmp_path / "mixed.toml")
+    # A grid key that the chosen encoding does not read is an error too.
+    with pytest.raises(ConfigError, match=r"grid.tv_weight = 0.5 applies to grid.encoding = 'triplane' only"):
+        load_config("builtin_grid", ['grid.encoding="hash"'])
+    with pytest.raises(ConfigError, match=r"grid.hash_table_log2 = 12 applies to grid.encoding = 'hash' only"):
+        load_config("builtin_grid", ["grid.hash_table_log2=12"])
+    hashed = load_config("builtin_grid", ['grid.encoding="hash"', "grid.tv_weight=0", "grid.hash_table_log2=12"])
+    assert hashed.grid.hash_table_log2 == 12
 
 
 def test_old_model_keys_of_a_field_name_their_new_section():

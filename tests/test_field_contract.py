@@ -32,7 +32,7 @@ FIELDS = {
         "builtin_grid",
         [*SMALL_GRID, "grid.box_radius=0", "grid.density_activation=softplus"],
     ),
-    "hash": ("builtin_grid", [*SMALL_GRID, 'grid.encoding="hash"', "grid.hash_table_log2=6"]),
+    "hash": ("builtin_grid", [*SMALL_GRID, 'grid.encoding="hash"', "grid.hash_table_log2=6", "grid.tv_weight=0"]),
 }
 SCENE_BOX = ((-1.0, -0.5, -2.0), (1.5, 1.0, 0.5))
 SCHEDULE_END = 20  # grid.coarse_to_fine_steps above; the MLP has no schedule
