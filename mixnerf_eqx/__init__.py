@@ -30,6 +30,7 @@ with _jaxtyping.install_import_hook(__name__, "beartype.beartype"):
     from ._config import config_path as config_path
     from ._config import config_to_dict as config_to_dict
     from ._config import load_config as load_config
+    from ._config import loss_weight as loss_weight
     from ._config import schedule_steps as schedule_steps
     from ._config import setting_warnings as setting_warnings
     from ._inference.camera_path import camera_path as camera_path

@@ -102,15 +102,32 @@ class GridConfig:
     lookup: Literal["auto", "vmap", "batched"] = "auto"
 
 
+def loss_weight(default: float, *, mixture: bool = False) -> Any:
+    """A `[loss]` field that weighs a loss term (`mixnerf_eqx._train.loss.LossTerm.weight`):
+    range-checked to be at least 0; with `mixture`, one of MixNeRF's own terms, of whose weights
+    a MixNeRF run needs one non-zero. A new term's weight is declared this way in its section."""
+    return dataclasses.field(default=default, metadata={"loss_weight": True, "mixture": mixture})
+
+
+def loss_weight_keys(loss: Any) -> dict[str, bool]:
+    """The `[loss]` keys that weigh loss terms, in `loss`'s section (a `LossConfig` or a
+    subclass that declares more), each with whether its term is one of MixNeRF's own."""
+    return {
+        field.name: field.metadata["mixture"]
+        for field in dataclasses.fields(loss)
+        if field.metadata.get("loss_weight")
+    }
+
+
 @dataclasses.dataclass(frozen=True)
 class LossConfig:
-    coarse_mse_weight: float = 0.1  # MSE = MSE_fine + this * MSE_coarse
-    lambda_colour_start: float = 4.0  # lambda_C at step 1
-    lambda_colour_end: float = 1e-3  # lambda_C from `lambda_colour_steps` on
+    coarse_mse_weight: float = loss_weight(0.1)  # MSE = MSE_fine + this * MSE_coarse
+    lambda_colour_start: float = loss_weight(4.0, mixture=True)  # lambda_C at step 1
+    lambda_colour_end: float = loss_weight(1e-3, mixture=True)  # lambda_C from `lambda_colour_steps` on
     lambda_colour_steps: int = 512  # length of lambda_C's linear ramp
     lambda_colour_fraction: float = 0.0  # > 0: the ramp lasts this fraction of the run instead
-    lambda_depth: float = 1e-3  # lambda_D (Blender 4-view)
-    lambda_regen: float = 1e-4  # lambda_hat_C (Blender 4-view)
+    lambda_depth: float = loss_weight(1e-3, mixture=True)  # lambda_D (Blender 4-view)
+    lambda_regen: float = loss_weight(1e-4, mixture=True)  # lambda_hat_C (Blender 4-view)
     nll_levels: Literal["coarse", "both"] = "coarse"  # levels the NLLs apply to (released: coarse)
     # false: the colour NLLs do not train the samples' colours (their gradient stops at the
     # components' locations), only the weights and scales; true: the paper's NLLs.
@@ -124,11 +141,11 @@ class LossConfig:
     # weights normalised over the samples (the paper). No effect on scenes without a background.
     background_component: bool = False
     background_scale: float = 0.01  # that component's scale per channel
-    distortion_weight: float = 0.0  # mip-NeRF 360's distortion loss on both levels (0: off, the paper)
-    opacity_weight: float = 0.0  # mean ray opacity on both levels, a prior for empty space (0: off)
-    opacity_entropy_weight: float = 0.0  # binary entropy of the ray opacity, both levels (0: off)
-    unseen_entropy_weight: float = 0.0  # the same on the unseen-view patches below (0: off)
-    depth_smoothness_weight: float = 0.0  # RegNeRF's depth smoothness on patches of unseen views (0: off)
+    distortion_weight: float = loss_weight(0.0)  # mip-NeRF 360's distortion loss on both levels (0: off, the paper)
+    opacity_weight: float = loss_weight(0.0)  # mean ray opacity on both levels, a prior for empty space (0: off)
+    opacity_entropy_weight: float = loss_weight(0.0)  # binary entropy of the ray opacity, both levels (0: off)
+    unseen_entropy_weight: float = loss_weight(0.0)  # the same on the unseen-view patches below (0: off)
+    depth_smoothness_weight: float = loss_weight(0.0)  # RegNeRF's depth smoothness on patches of unseen views (0: off)
     smoothness_patches: int = 4  # patches of unseen views rendered per step for the two unseen-view priors
     smoothness_patch_size: int = 8  # their side in pixels
     smoothness_views: int = 64  # unseen cameras to draw them from: a path through the training cameras
@@ -341,21 +358,6 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
 )
 
 
-# The weights of the loss terms (`[loss]` keys), each at least 0: filled by the loss registry
-# (`mixnerf_eqx._train.loss.register_loss_term`), with whether the term is one of MixNeRF's own.
-_LOSS_WEIGHTS: dict[str, bool] = {}
-
-
-def register_loss_weight(key: str, *, mixture: bool) -> None:
-    """Declares `loss.key` the weight of a loss term: it must be at least 0, and where
-    `mixture`, it counts among the weights of which a MixNeRF run needs one non-zero."""
-    _LOSS_WEIGHTS[key] = mixture
-
-
-def unregister_loss_weight(key: str) -> None:
-    _LOSS_WEIGHTS.pop(key, None)
-
-
 def _setting(config: "Config", key: str) -> Any:
     section, name = key.split(".")
     return getattr(getattr(config, section), name)
@@ -403,7 +405,7 @@ def _consistency_problems(config: "Config") -> list[str]:
     """Settings that are each in range but cannot be used together."""
     problems = []
     data, loss, occupancy = config.data, config.loss, config.occupancy
-    nll_weights = [getattr(loss, key) for key, mixture in _LOSS_WEIGHTS.items() if mixture]
+    nll_weights = [getattr(loss, key) for key, mixture in loss_weight_keys(loss).items() if mixture]
     if config.method == "mixnerf" and nll_weights and not any(nll_weights):
         problems.append(
             'every mixture loss weight is zero: for the mip-NeRF baseline set method = "mipnerf" '
@@ -490,7 +492,7 @@ def setting_warnings(config: "Config") -> list[str]:
 
 def validate(config: "Config") -> None:
     """Raises `ConfigError` naming every setting whose value no run can use."""
-    ranges = (*_RANGES, *((f"loss.{key}", *_at_least(0)) for key in _LOSS_WEIGHTS))
+    ranges = (*_RANGES, *((f"loss.{key}", *_at_least(0)) for key in loss_weight_keys(config.loss)))
     problems = [
         f"{key} {wanted}, got {_setting(config, key)!r}"
         for key, check, wanted in ranges

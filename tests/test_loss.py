@@ -319,7 +319,7 @@ def test_opacity_entropy_is_zero_at_empty_and_opaque_and_log2_at_half():
 class _LossWithDummy(LossConfig):
     """`[loss]` with the one line a new term adds: its weight."""
 
-    dummy_weight: float = 0.0
+    dummy_weight: float = mx.loss_weight(0.0)
 
 
 @pytest.fixture
@@ -340,6 +340,9 @@ def test_a_registered_term_is_weighted_logged_and_range_checked(mixnerf_model, t
         dataclasses.replace(tiny_config, loss=dataclasses.replace(loss, dummy_weight=-0.5))
     with pytest.raises(ValueError, match="already registered"):
         mx.register_loss_term(dummy_term)
+    # A term whose weight its [loss] section does not declare is refused when weighed.
+    with pytest.raises(ValueError, match=r"weighted by loss.dummy_weight, which the \[loss\] section does not"):
+        LossWeights.from_config(tiny_config.loss, "mixnerf")
     # Weighted: it enters the total with its weight, and a zero weight computes nothing.
     rng = np.random.default_rng(7)
     directions = np.tile([[0.0, 0.0, -1.0]], (8, 1))

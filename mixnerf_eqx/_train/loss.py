@@ -3,7 +3,8 @@
 A term is a function of the rendered levels (and of the rays, the target colours and the
 unseen-view patches) and a weight, a `[loss]` key of the config. The total, the training log,
 the range check of the weights and `LossTerms` all come from the registry, so a new term is
-its function, `register_loss_term(LossTerm(...))` and its line in `LossConfig`:
+its function, `register_loss_term(LossTerm(...))` and its line in `LossConfig`, declared with
+`loss_weight` (which range-checks it):
 
     def mean_depth(inputs: LossInputs) -> Float[Array, ""]:
         return jnp.mean(inputs.outputs.fine.depth)
@@ -21,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._config import LossConfig, register_loss_weight, unregister_loss_weight
+from .._config import LossConfig, loss_weight_keys
 from .._custom_types import PRNGKey
 from .._nn.budget import SampleBudget
 from .._nn.compositing import blend_weights, distortion, log_transmittance
@@ -73,17 +74,13 @@ def register_loss_term(term: LossTerm) -> LossTerm:
         raise ValueError(f"a loss term named {term.name!r} is already registered")
     if term.scheduled and (term.weight is None or any(other.scheduled for other in _REGISTRY.values())):
         raise ValueError("one loss term at most has a scheduled weight, and it needs a weight key")
-    for key in term.weight_keys():
-        register_loss_weight(key, mixture=term.mixture)
     _REGISTRY[term.name] = term
     return term
 
 
 def unregister_loss_term(name: str) -> None:
-    """Removes the term `name` (and its weight's range check) from the objective."""
-    term = _REGISTRY.pop(name)
-    for key in term.weight_keys():
-        unregister_loss_weight(key)
+    """Removes the term `name` from the objective."""
+    _REGISTRY.pop(name)
 
 
 def loss_term_names() -> tuple[str, ...]:
@@ -116,7 +113,14 @@ class LossWeights:
         The priors on the weights apply to both methods alike, so the comparison stays fair.
         """
         weights = []
+        declared = loss_weight_keys(loss)
         for term in _REGISTRY.values():
+            undeclared = [key for key in term.weight_keys() if key not in declared]
+            if undeclared:
+                raise ValueError(
+                    f"loss term {term.name!r} is weighted by loss.{undeclared[0]}, which the [loss] section does "
+                    "not declare a loss weight: add it there with loss_weight(default)"
+                )
             if term.mixture and method == "mipnerf":
                 value = 0.0
             elif term.weight is None:
