@@ -54,19 +54,28 @@ def test_an_ndc_candidate_facing_away_is_refused(tiny_config, tiny_scene):
         mx.next_view(model, like, np.stack([np.eye(3, 4), away]), 0.0, 1.0)
 
 
-def test_the_score_is_the_mean_predictive_spread_of_a_small_render(short_run, tiny_scene):
+def test_the_score_is_the_opacity_weighted_spread_of_a_small_render(short_run, tiny_scene):
+    import equinox as eqx
+
     _, model = short_run
     pool = builtin_views_at([10.0, 100.0, 200.0], [15.0, 50.0, 30.0], resolution=32)
     ranking = mx.next_view(model, tiny_scene.train, pool.camtoworlds, tiny_scene.near, tiny_scene.far, width=16)
-    colour = mx.next_view(model, tiny_scene.train, pool.camtoworlds, tiny_scene.near, tiny_scene.far, width=16, score="colour")
     small = _small(tiny_scene.train, 16)
     assert (small.width, small.height) == (16, 16) and small.focal == pytest.approx(tiny_scene.train.focal / 2)
+    render = eqx.filter_jit(lambda m, r: m(r))
     for index, pose in enumerate(pool.camtoworlds):
-        maps = mx.predict_rays(model, rays_at_poses(small, pose[None], tiny_scene.near, tiny_scene.far))
-        spread = maps["depth_std"].mean() / (tiny_scene.far - tiny_scene.near)
-        assert ranking.scores[index] == pytest.approx(spread, rel=1e-5)
-        assert colour.scores[index] == pytest.approx(maps["colour_std"].mean(), rel=1e-5)
-        assert ranking.opacity[index] == pytest.approx(maps["acc"].mean(), rel=1e-5)
+        fine = render(model, rays_at_poses(small, pose[None], tiny_scene.near, tiny_scene.far).reshape(-1)).fine
+        # Float64 reference: each ray's termination distance, uniform within each interval.
+        weights = np.asarray(fine.weights, np.float64)
+        edges = np.asarray(fine.t_edges, np.float64)
+        masses = weights / np.maximum(weights.sum(-1, keepdims=True), 1e-300)
+        centres, widths = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+        mean = np.sum(masses * centres, -1, keepdims=True)
+        std = np.sqrt(np.sum(masses * (widths**2 / 12 + (centres - mean) ** 2), -1))
+        acc = np.asarray(fine.acc, np.float64)
+        want = np.sum(acc * std) / np.sum(acc) / (tiny_scene.far - tiny_scene.near)
+        assert ranking.scores[index] == pytest.approx(want, rel=1e-4)
+        assert ranking.opacity[index] == pytest.approx(acc.mean(), rel=1e-5)
     assert list(ranking.order) == list(np.argsort(-ranking.scores))
     with pytest.raises(ValueError, match="score must be one of"):
         mx.next_view(model, tiny_scene.train, pool.camtoworlds, tiny_scene.near, tiny_scene.far, score="entropy")

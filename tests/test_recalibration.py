@@ -122,6 +122,64 @@ def test_isotonic_map_recovers_the_true_density():
     assert calibration_error(fitted(pit))[0] < 1e-4
 
 
+def test_isotonic_density_at_an_atom_is_the_neighbouring_segments():
+    # PIT values piled on one value (float32 rounding to 1) make knots that several quantiles
+    # share: the map jumps there, and the density of a truth on the atom is the continuous
+    # part's next to it, not a slope of one shared knot to the next.
+    rng = np.random.default_rng(6)
+    pit = np.concatenate([rng.uniform(size=9000), np.full(500, 0.3), np.full(500, 1.0)])[:, None]
+    fitted = IsotonicMap.fit(pit)
+    slopes = np.exp(fitted.log_slope(np.array([[1.0], [0.3], [0.6], [0.0]])))[:, 0]
+    # The continuous part holds 90% of the mass, spread uniformly: A' is about 0.9 off the atoms,
+    # within the noise of a slope read between quantile knots 20 values apart (a slope taken
+    # across a shared knot would be the map's jump over a tiny run: e^12 and more).
+    assert np.all((slopes > 0.3) & (slopes < 5.0)), slopes
+    assert np.all(np.isfinite(fitted.log_slope(pit)))
+
+
+def test_calibration_pixels_are_drawn_per_view_and_depths_kept_where_finite(short_run, tiny_scene):
+    from mixnerf_eqx._train.run_folder import restore_run
+
+    model = restore_run(short_run).model
+    val = tiny_scene.val
+    pixels = val.num_views * val.height * val.width
+    every = mx.calibration_pit(model, val, tiny_scene.near, tiny_scene.far, max_pixels=None)
+    assert every["colour_cdf"].shape == (pixels, 3)
+    assert every["depth_cdf"].shape == (int(np.isfinite(val.depths).sum()),)
+    drawn = mx.calibration_pit(model, val, tiny_scene.near, tiny_scene.far, max_pixels=500, seed=3)
+    chosen = np.sort(np.random.default_rng(3).choice(pixels, size=500, replace=False))
+    np.testing.assert_allclose(drawn["colour_cdf"], every["colour_cdf"][chosen], atol=1e-6)
+    assert drawn["depth_cdf"].size == int(np.isfinite(val.depths.reshape(-1)[chosen]).sum())
+    # NDC rays are not measured in z-depth: no depth PIT values from them.
+    ndc = dataclasses.replace(val, ndc=True)
+    assert mx.calibration_pit(model, ndc, 0.0, 1.0, max_pixels=50)["depth_cdf"].size == 0
+
+
+def test_levels_carry_their_masses_and_a_new_calibration_compiles_nothing(short_run, tiny_scene, monkeypatch):
+    import equinox as eqx
+
+    from mixnerf_eqx._predictive import uncertainty as _uncertainty
+    from mixnerf_eqx._train.run_folder import restore_run
+    from mixnerf_eqx.data import rays_for_views
+
+    model = restore_run(short_run).model
+    once = eqx.filter_jit(eqx.debug.assert_max_traces(_uncertainty._summarise_rays, max_traces=1))
+    monkeypatch.setattr(_uncertainty, "_summarise_chunk", once)
+    view = tiny_scene.test.select([0])
+    rays = rays_for_views(view, tiny_scene.near, tiny_scene.far)
+    rng = np.random.default_rng(8)
+    raw = mx.predict_rays(model, rays, masses=MASSES)
+    fitted = Recalibration.fit("conformal", too_narrow_pit(rng, 400), masses=MASSES)
+    moved = mx.predict_rays(model, rays, masses=MASSES, levels=fitted.interval_levels())
+    assert not np.allclose(raw["colour_lower"], moved["colour_lower"])
+    # Levels fitted for other masses of the same count are refused, not mislabelled.
+    other = Recalibration.fit("conformal", too_narrow_pit(rng, 400), masses=(0.6, 0.7, 0.8, 0.9))
+    with pytest.raises(ValueError, match="levels belong to the interval masses"):
+        mx.predict_rays(model, rays, masses=MASSES, levels=other.interval_levels())
+    with pytest.raises(ValueError, match="pass the recalibration the maps were made with"):
+        mx.coverage_report({**raw, "masses": np.asarray(MASSES)}, view.images, None, other)
+
+
 def test_the_mixtures_distribution_functions_match_float64(tmp_path):
     from test_predictive import as_mixture, draw, np_channel_cdf, np_log_density, random_mixtures
 
@@ -156,6 +214,10 @@ def test_the_termination_distance_cdf_is_piecewise_linear():
     assert float(depth.cdf(jnp.asarray([0.0]))[0]) == 0.0
     with pytest.raises(ValueError, match="one distance per ray"):
         depth.cdf(jnp.zeros((2,)))
+    # A ray without weight terminates at its far bound, as its quantiles report.
+    empty = mx.TerminationDistribution(jnp.zeros((1, 4), jnp.float32), edges)
+    assert float(empty.cdf(jnp.asarray([4.9]))[0]) == 0.0 and float(empty.cdf(jnp.asarray([5.0]))[0]) == 1.0
+    assert float(empty.quantile(0.5)[0]) == 5.0
 
 
 def test_ndc_depth_maps_back_to_the_world_plane_it_came_from():
@@ -167,13 +229,40 @@ def test_ndc_depth_maps_back_to_the_world_plane_it_came_from():
     points, depth = world_points(views, 0, np.full((height, width), 0.8), 0.0, 1.0)
     np.testing.assert_allclose(points[..., 2], -5.0, rtol=1e-6)
     np.testing.assert_allclose(depth, 5.0, rtol=1e-6)
-    # Each point lies on its pixel's ray from the camera: x / z = (u - W/2) / (-f).
+    # Each point lies on its pixel's ray from the camera: x / z = (u - W/2) / (-f), and
+    # y / z = -(v - H/2) / (-f) (OpenGL: y up).
     u = np.arange(width) + 0.5 - width / 2
+    v = np.arange(height) + 0.5 - height / 2
     np.testing.assert_allclose(points[0, :, 0] / points[0, :, 2], -u / focal, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(points[:, 0, 1] / points[:, 0, 2], v / focal, rtol=1e-5, atol=1e-7)
+    # t = 1 is the point at infinity: no point, an infinite depth, no NaN depth.
+    far_points, far_depth = world_points(views, 0, np.ones((height, width)), 0.0, 1.0)
+    assert np.all(np.isnan(far_points)) and np.all(np.isinf(far_depth))
     # A bounded scene's depth is a distance along the unnormalised camera direction already.
     bounded = dataclasses.replace(views, ndc=False)
     _, plain = world_points(bounded, 0, np.full((height, width), 3.0), 2.0, 6.0)
     np.testing.assert_allclose(plain, 3.0, rtol=1e-6)
+
+
+def test_ndc_round_trip_of_world_points_from_a_turned_and_moved_camera():
+    from mixnerf_eqx.data import rays_for_views
+
+    height, width, focal = 5, 9, 6.0
+    angle = np.deg2rad(12.0)
+    turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    tilt = np.array([[1, 0, 0], [0, np.cos(0.1), -np.sin(0.1)], [0, np.sin(0.1), np.cos(0.1)]])
+    pose = np.concatenate([turn @ tilt, [[0.2], [-0.1], [0.3]]], axis=1)[None]
+    views = Views(images=np.zeros((1, height, width, 3), np.float32), camtoworlds=pose.astype(np.float32), focal=focal, ndc=True)
+    world = rays_for_views(dataclasses.replace(views, ndc=False), 0.0, 1.0)
+    origins, directions = np.asarray(world.origins[0], np.float64), np.asarray(world.directions[0], np.float64)
+    along = np.random.default_rng(1).uniform(3.0, 9.0, (height, width))  # camera z-depths
+    truth = origins + along[..., None] * directions
+    # The NDC ray parameter of each world point (NeRF's appendix C, near plane 1).
+    z_ndc = 1.0 + 2.0 / truth[..., 2]
+    t = (z_ndc + 1.0) / 2.0
+    points, depth = world_points(views, 0, t, 0.0, 1.0)
+    np.testing.assert_allclose(points, truth, rtol=2e-5, atol=2e-5)
+    np.testing.assert_allclose(depth, along, rtol=2e-5)
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +291,8 @@ def test_eval_recalibrates_on_validation_views_and_exports_depth_and_points(shor
     calibration = report["calibration"]
     assert calibration["method"] == "conformal" and set(calibration["colour_coverage"]) == {"0.5", "0.8", "0.9", "0.95"}
     assert calibration["depth_coverage"] is not None  # the built-in scene knows its depth
-    assert set(report["raw_coverage"]) == set(calibration["colour_coverage"])
+    # "coverage" is the model's own intervals', beside the raw NLL.
+    assert set(report["coverage"]) == set(calibration["colour_coverage"])
     restored = Recalibration.from_json(calibration["levels"])
     assert restored.method == "conformal" and restored.pixels > 0
     arrays = np.load(out / "uncertainty.npz")
@@ -223,15 +313,26 @@ def test_eval_recalibrates_on_validation_views_and_exports_depth_and_points(shor
     isotonic = tmp_path / "isotonic"
     assert eval_main([*common, "--out", str(isotonic), "--uncertainty", "--calibration", "isotonic"]) == 0
     assert json.loads((isotonic / "metrics.json").read_text())["uncertainty"]["calibration"]["method"] == "isotonic"
-    # Calibrating on the views being scored, or without the predictive pass: refused.
-    assert eval_main([*common, "--out", str(tmp_path / "v"), "--uncertainty", "--split", "val"]) == 2
+    # Calibrating on the views being scored, or without the predictive pass: refused, before
+    # anything is rendered; by default, the validation split gets the model's own intervals.
+    import mixnerf_eqx.cli.eval as eval_module
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered before refusing")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(eval_module, "evaluate", no_render)
+        asked = ["--uncertainty", "--split", "val", "--calibration", "conformal"]
+        assert eval_main([*common, "--out", str(tmp_path / "v"), *asked]) == 2
     assert "cannot score them" in capsys.readouterr().err
+    assert eval_main([*common, "--out", str(tmp_path / "d"), "--uncertainty", "--split", "val"]) == 0
+    assert "the model's own intervals (the views scored are the validation views" in capsys.readouterr().out
     assert eval_main([*common, "--out", str(tmp_path / "w"), "--calibration", "raw"]) == 2
     assert "needs --uncertainty" in capsys.readouterr().err
     assert eval_main([*common, "--out", str(tmp_path / "r"), "--uncertainty", "--split", "val", "--calibration", "raw"]) == 0
 
 
-def test_recalibration_round_trips_through_json_and_recompiles_nothing():
+def test_recalibration_round_trips_through_json():
     rng = np.random.default_rng(5)
     fitted = Recalibration.fit("isotonic", too_narrow_pit(rng, 500), rng.uniform(size=200), masses=MASSES)
     again = Recalibration.from_json(json.dumps(fitted.to_json()))

@@ -219,26 +219,32 @@ def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeyp
         preview_image(model, viewer_rays(camera, 64, tiny_scene), "normals", 2.0, 6.0)
 
 
-def test_interval_modes_show_the_recalibrated_intervals(tiny_config, tiny_scene):
+def test_interval_modes_show_the_recalibrated_90_percent_interval(tiny_config, tiny_scene):
     from mixnerf_eqx._predictive.recalibration import Recalibration
 
     model = mx.init_train_state(tiny_config, tiny_scene).model
     rays = viewer_rays(camera_of_view(tiny_scene.test, 0), 32, tiny_scene)
-    own = Recalibration.raw((0.9,))
-    # An untrained model's intervals are wide (its colour ones beyond the colour scale's top):
-    # a 2% central interval stands for a recalibration that narrows them.
-    narrower = dataclasses.replace(
-        own,
-        colour_lower=np.full((1, 3), 0.49),
-        colour_upper=np.full((1, 3), 0.51),
-        depth_lower=np.array([0.49]),
-        depth_upper=np.array([0.51]),
-    )
+    own = Recalibration.raw((0.5, 0.8, 0.9, 0.95))
+
+    def moved(row):
+        # An untrained model's intervals are wide (its colour ones beyond the colour scale's
+        # top): a 2% central interval in one row stands for a recalibration that narrows it.
+        lower, upper = own.colour_lower.copy(), own.colour_upper.copy()
+        depth_lower, depth_upper = own.depth_lower.copy(), own.depth_upper.copy()
+        lower[row], upper[row], depth_lower[row], depth_upper[row] = 0.49, 0.51, 0.49, 0.51
+        return dataclasses.replace(
+            own, colour_lower=lower, colour_upper=upper, depth_lower=depth_lower, depth_upper=depth_upper
+        )
+
     for mode in ("colour 90% interval", "depth 90% interval"):
         default = preview_image(model, rays, mode, tiny_scene.near, tiny_scene.far)
         assert default.shape == (32, 32, 3)
-        assert np.array_equal(default, preview_image(model, rays, mode, tiny_scene.near, tiny_scene.far, None, own))
-        assert not np.array_equal(default, preview_image(model, rays, mode, tiny_scene.near, tiny_scene.far, None, narrower))
+        show = lambda recalibration: preview_image(  # noqa: E731
+            model, rays, mode, tiny_scene.near, tiny_scene.far, None, recalibration
+        )
+        assert np.array_equal(default, show(own))
+        assert np.array_equal(default, show(moved(0)))  # the 50% row: not what is shown
+        assert not np.array_equal(default, show(moved(2)))  # the 90% row
 
 
 def test_the_server_shows_every_camera_renders_and_stops(tiny_config, tiny_scene):

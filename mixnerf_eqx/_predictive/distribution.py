@@ -412,10 +412,16 @@ class TerminationDistribution(eqx.Module):
 
     def cdf(self, t: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
         """The probability that each ray terminates before `t` (`termination_cdf`); 1 for a
-        `t` beyond the last edge, `inf` included."""
+        `t` beyond the last edge, `inf` included. A ray without weight terminates at its far
+        bound (as its quantiles say): 0 before it, 1 from it on."""
         if tuple(jnp.shape(t)) != self.batch_shape:
             raise ValueError(f"cdf takes one distance per ray, shape {self.batch_shape}; got shape {tuple(jnp.shape(t))}")
-        return _per_ray(self.batch_shape, termination_cdf, t, self.weights, self.t_edges)
+
+        def one_ray(t, weights, t_edges):
+            at_far = (t >= t_edges[-1]).astype(t_edges.dtype)
+            return jnp.where(jnp.sum(weights) > 0, termination_cdf(t, weights, t_edges), at_far)
+
+        return _per_ray(self.batch_shape, one_ray, t, self.weights, self.t_edges)
 
     def quantiles(self, levels: Levels) -> Float[Array, "_ *batch"]:
         """The termination distance's quantiles at each of `levels` in (0, 1), stacked in
@@ -711,10 +717,12 @@ class IntervalLevels(eqx.Module):
 
     **Fields:**
 
+    - `masses` (static): the nominal masses the levels belong to, in order.
     - `colour_lower`, `colour_upper`: per mass and colour channel.
     - `depth_lower`, `depth_upper`: per mass, for the termination distance.
     """
 
+    masses: tuple[float, ...] = eqx.field(static=True)
     colour_lower: Float[Array, "masses channels"]
     colour_upper: Float[Array, "masses channels"]
     depth_lower: Float[Array, " masses"]
@@ -726,6 +734,7 @@ class IntervalLevels(eqx.Module):
         masses = np.asarray([float(_check_level(mass, "an interval mass")) for mass in masses], np.float64)
         lower, upper = 0.5 * (1.0 - masses), 0.5 * (1.0 + masses)
         return IntervalLevels(
+            masses=tuple(float(mass) for mass in masses),
             colour_lower=jnp.asarray(np.repeat(lower[:, None], channels, axis=1), jnp.float32),
             colour_upper=jnp.asarray(np.repeat(upper[:, None], channels, axis=1), jnp.float32),
             depth_lower=jnp.asarray(lower, jnp.float32),
@@ -757,6 +766,9 @@ def summarise(
     channels = colour.location.shape[-1]
     if levels is None:
         levels = IntervalLevels.raw(masses, channels)
+    same_masses = len(levels.masses) == count and np.allclose(levels.masses, masses, rtol=0, atol=1e-9)
+    if not same_masses:
+        raise ValueError(f"levels belong to the interval masses {levels.masses}, not to {masses}")
     if levels.colour_lower.shape != (count, channels) or levels.depth_lower.shape != (count,):
         raise ValueError(
             f"levels must hold {count} interval masses ({channels} colour channels); got colour levels of "

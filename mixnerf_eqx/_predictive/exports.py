@@ -27,23 +27,26 @@ def world_points(
     views: Views, index: int, t: Float[np.ndarray, "height width"], near: float, far: float
 ) -> tuple[Float[np.ndarray, "height width 3"], Float[np.ndarray, "height width"]]:
     """The world points at ray distance `t` along view `index`'s rays, and their camera
-    z-depths (distance along the camera's viewing axis, scene units)."""
+    z-depths (distance along the camera's viewing axis, scene units). For an NDC scene, `t = 1`
+    (the far bound, infinitely far) gives a NaN point and an infinite depth."""
     one = views.select([index])
     rays = rays_for_views(one, near, far)
     origins = np.asarray(rays.origins[0], np.float64)
     directions = np.asarray(rays.directions[0], np.float64)
     t = np.asarray(t, np.float64)
     points = origins + t[..., None] * directions
-    if views.ndc:
-        # Inverse NDC: z' = 1 + 2 near / z, x' = -(2 f / W) x / z, y' = -(2 f / H) y / z.
-        with np.errstate(divide="ignore", invalid="ignore"):
+    camtoworld = np.asarray(one.camtoworlds[0], np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if views.ndc:
+            # Inverse NDC: z' = 1 + 2 near / z, x' = -(2 f / W) x / z, y' = -(2 f / H) y / z.
+            # t = 1 (a ray that reports its far bound) is the point at infinity: no point.
             z = 2.0 * _NDC_NEAR / (points[..., 2] - 1.0)
             x = points[..., 0] * z / (-2.0 * views.focal / views.width)
             y = points[..., 1] * z / (-2.0 * views.focal / views.height)
-        points = np.stack([x, y, z], axis=-1)
-    camtoworld = np.asarray(one.camtoworlds[0], np.float64)
-    local = (points - camtoworld[:, 3]) @ camtoworld[:, :3]
-    return points, -local[..., 2]
+            points = np.where((t < 1.0)[..., None], np.stack([x, y, z], axis=-1), np.nan)
+        local = (points - camtoworld[:, 3]) @ camtoworld[:, :3]
+    depth = np.where(np.isfinite(local[..., 2]), -local[..., 2], np.inf)
+    return points, depth
 
 
 def _interval_index(masses: np.ndarray, wanted: float = 0.9) -> int:

@@ -3,8 +3,9 @@
 A trained MixNeRF predicts, for every pixel of a camera it never saw, a colour mixture and a
 distribution of where the ray terminates. Where those are wide the model has not pinned the
 scene down, and an image taken there is expected to teach it the most. `next_view` renders
-each candidate at a small width (`width` pixels across) with the predictive pass and scores
-it by the mean spread over its pixels:
+each candidate at a small width (`width` pixels across) and scores it by the spread over its
+pixels, averaged with each pixel's opacity as its weight (a nearly transparent ray's
+distributions are renormalised over almost nothing, and say nothing about the scene):
 
 - `"depth"`: the termination distance's standard deviation, in units of the sampling
   interval `far - near` (geometry the views leave ambiguous);
@@ -22,9 +23,14 @@ import dataclasses
 import numpy as np
 from jaxtyping import Float
 
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._inference.evaluation import join_chunks, map_ray_chunks
 from .._nn.model import MixNeRF
+from .._nn.rays import RayBundle
 from ..data import Views, rays_at_poses
-from .uncertainty import predict_rays
+from .distribution import predictive
 
 SCORES = ("depth", "colour")
 # A bounded scene's candidate whose render is this transparent on average sees nothing of it.
@@ -77,6 +83,17 @@ def check_candidate_poses(camtoworlds) -> Float[np.ndarray, "num_views 3 4"]:
     return poses
 
 
+@eqx.filter_jit
+def _spreads(model: MixNeRF, rays: RayBundle) -> dict:
+    """Per ray: the termination distance's and the colour's standard deviation, and the opacity."""
+    prediction = predictive(model, rays)
+    return {
+        "depth": prediction.depth.std(),
+        "colour": jnp.mean(prediction.colour.std(), axis=-1),
+        "acc": prediction.acc,
+    }
+
+
 def _small(like: Views, width: int) -> Views:
     """`like`'s camera shrunk to `width` pixels across (intrinsics scaled alike): one blank view
     that only lends `rays_at_poses` its image size, intrinsics and ray space."""
@@ -127,18 +144,18 @@ def next_view(
                     f"candidate pose {index} faces away from the scene: an NDC scene is seen along -z"
                 )
         rays = rays_at_poses(small, pose[None].astype(np.float32), near, far)
-        summary = predict_rays(model, rays, chunk, masses=(0.5,))
-        seen = float(np.mean(summary["acc"]))
+        flat = rays.reshape(-1)
+        parts, count = map_ray_chunks(lambda piece, real, _: _spreads(model, piece), flat, chunk)
+        spreads = {name: join_chunks([part[name] for part in parts], count).astype(np.float64) for name in parts[0]}
+        seen = float(np.mean(spreads["acc"]))
         if not like.ndc and seen < MIN_OPACITY:
             raise ValueError(
                 f"candidate pose {index} sees nothing of the scene (mean opacity {seen:.3f} < {MIN_OPACITY}): "
                 "it faces away from it or lies outside its bounds"
             )
-        if score == "depth":
-            value = float(np.mean(summary["depth_std"])) / (far - near)
-        else:
-            value = float(np.mean(summary["colour_std"]))
-        scores.append(value)
+        weights = np.clip(spreads["acc"], 0.0, 1.0)
+        value = float(np.sum(weights * spreads[score]) / max(np.sum(weights), 1e-12))
+        scores.append(value / (far - near) if score == "depth" else value)
         opacity.append(seen)
     scores = np.asarray(scores)
     return ViewRanking(order=np.argsort(-scores, kind="stable"), scores=scores, score=score, opacity=np.asarray(opacity))

@@ -131,18 +131,20 @@ class IsotonicMap:
 
     def log_slope(self, pit) -> np.ndarray:
         """`log A'(u)` per pixel and column: the log factor that the calibrated density
-        `A'(F(y)) f(y)` puts on the raw one (the slope of the segment holding `u`; a knot
-        shared by several quantiles, an atom of the PIT values, gives the steepest neighbour)."""
+        `A'(F(y)) f(y)` puts on the raw one. Knots that several quantiles share (an atom of
+        the calibration PIT values, such as values rounded to 1) are merged: `A` jumps there,
+        and a `u` on such a knot takes the slope of the segment after it (the last one: before
+        it), the continuous part of `A` on either side."""
         values = _pit_array(pit, "pit")
         out = np.empty_like(values)
-        rise = np.diff(self.targets)
         for c in range(values.shape[1]):
-            run = np.diff(self.knots[c])
-            with np.errstate(divide="ignore"):
-                slope = np.where(run > 0, rise / np.where(run > 0, run, 1.0), np.inf)
-            finite = slope[np.isfinite(slope)]
-            slope = np.where(np.isfinite(slope), slope, finite.max() if finite.size else 1.0)
-            segment = np.clip(np.searchsorted(self.knots[c], values[:, c], side="right") - 1, 0, run.size - 1)
+            knots, first = np.unique(self.knots[c], return_index=True)
+            last = np.unique(self.knots[c][::-1], return_index=True)[1]
+            last = self.knots.shape[1] - 1 - last
+            # The segment from knot k to k + 1 rises from A's value as it leaves k (the largest
+            # target there) to its value as it reaches k + 1 (the smallest).
+            slope = (self.targets[first[1:]] - self.targets[last[:-1]]) / np.diff(knots)
+            segment = np.clip(np.searchsorted(knots, values[:, c], side="right") - 1, 0, slope.size - 1)
             out[:, c] = np.log(slope[segment])
         return out
 
@@ -256,6 +258,7 @@ class Recalibration:
     def interval_levels(self) -> IntervalLevels:
         """The levels `predict_rays` and `summarise` bound the intervals with."""
         return IntervalLevels(
+            masses=self.masses,
             colour_lower=jnp.asarray(self.colour_lower, jnp.float32),
             colour_upper=jnp.asarray(self.colour_upper, jnp.float32),
             depth_lower=jnp.asarray(self.depth_lower, jnp.float32),

@@ -121,9 +121,10 @@ def predict_rays(
             f"depth_targets takes one depth per ray, shape {rays.batch_shape}; got shape "
             f"{tuple(np.shape(depth_targets))}"
         )
-    levels = IntervalLevels.raw(masses) if levels is None else levels
-    if levels.colour_lower.shape[0] != len(masses):
-        raise ValueError(f"levels hold {levels.colour_lower.shape[0]} interval masses, masses {len(masses)}")
+    if levels is None:
+        levels = IntervalLevels.raw(masses)
+    elif len(levels.masses) != len(masses) or not np.allclose(levels.masses, masses, rtol=0, atol=1e-9):
+        raise ValueError(f"levels belong to the interval masses {levels.masses}, not to masses={masses}")
     batch_shape = rays.batch_shape
     if math.prod(batch_shape) == 0:
         return _no_rays(model, rays, masses, targets is not None, with_mode, levels, depth_targets is not None)
@@ -193,6 +194,13 @@ def _fields(summary: PredictiveSummary) -> dict[str, Array]:
     return {name: getattr(summary, name) for name in fields if getattr(summary, name) is not None}
 
 
+def depths_are_ray_distances(views: Views) -> bool:
+    """Whether `views.depths` (camera z-depths) are distances along the rays the model renders:
+    true for rays from the camera centre along the unnormalised directions; not in NDC, nor
+    for origins moved onto a plane."""
+    return views.depths is not None and not views.ndc and views.origin_plane_z is None
+
+
 def predict_views(
     model: MixNeRF,
     views: Views,
@@ -213,7 +221,7 @@ def predict_views(
     for index in range(views.num_views):
         one = views.select([index])
         targets = one.images if with_targets else None
-        depths = one.depths if with_targets and one.depths is not None else None
+        depths = one.depths if with_targets and depths_are_ray_distances(one) else None
         per_view.append(
             predict_rays(
                 model,
@@ -374,25 +382,34 @@ def calibration_pit(
 
     `colour_cdf` and `colour_log_density` of shape `(pixels, channels)`, and `depth_cdf` of
     shape `(depth_pixels,)` over the drawn pixels whose true depth is known and finite (empty
-    where the views have no true depth).
+    where the views have no true depth, or where their camera z-depths are not distances along
+    the rendered rays: NDC scenes, origins moved onto a plane).
     """
     _check_temperature(temperature)
     if views.num_views == 0:
         raise ValueError("no calibration views: calibration needs at least one view the model did not train on")
-    rays = rays_for_views(views, near, far).reshape(-1)
-    colours = views.images.reshape(-1, 3).astype(np.float32)
-    depths = (
-        np.full(colours.shape[0], np.nan, np.float32)
-        if views.depths is None
-        else views.depths.reshape(-1).astype(np.float32)
-    )
-    total = colours.shape[0]
+    if max_pixels is not None and max_pixels < 1:
+        raise ValueError(f"max_pixels must be at least 1, got {max_pixels}")
+    per_view = views.height * views.width
+    total = views.num_views * per_view
+    chosen = np.arange(total)
     if max_pixels is not None and max_pixels < total:
-        if max_pixels < 1:
-            raise ValueError(f"max_pixels must be at least 1, got {max_pixels}")
         chosen = np.sort(np.random.default_rng(seed).choice(total, size=max_pixels, replace=False))
-        rays = jax.tree_util.tree_map(lambda x: x[chosen], rays)
-        colours, depths = colours[chosen], depths[chosen]
+    with_depths = depths_are_ray_distances(views)
+    pieces, colours, depths = [], [], []
+    # One view's rays at a time: only the drawn pixels' rays are kept.
+    for index in range(views.num_views):
+        mine = chosen[(chosen >= index * per_view) & (chosen < (index + 1) * per_view)] - index * per_view
+        if mine.size == 0:
+            continue
+        one = views.select([index])
+        rays = rays_for_views(one, near, far).reshape(-1)
+        pieces.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[mine], rays))
+        colours.append(one.images.reshape(-1, 3)[mine])
+        depths.append(one.depths.reshape(-1)[mine] if with_depths else np.full(mine.size, np.nan))
+    rays = jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.concatenate(xs)), *pieces)
+    colours = np.concatenate(colours).astype(np.float32)
+    depths = np.concatenate(depths).astype(np.float32)
     known = np.isfinite(depths)
     targets = np.concatenate([colours, np.where(known, depths, 0.0)[:, None]], axis=1)
     scale = jnp.asarray(temperature, jnp.float32)
@@ -453,6 +470,11 @@ def coverage_report(
     channels, nats) and calibration error (mean over the channels, and per channel).
     """
     recalibration = recalibration or Recalibration.raw(tuple(float(m) for m in maps["masses"]))
+    if len(recalibration.masses) != len(maps["masses"]) or not np.allclose(recalibration.masses, maps["masses"]):
+        raise ValueError(
+            f"the maps hold intervals of masses {tuple(maps['masses'])}, the recalibration {recalibration.masses}: "
+            "pass the recalibration the maps were made with (predict_views(levels=recalibration.interval_levels()))"
+        )
     num_views = images.shape[0]
     colour = {}
     for index, mass in enumerate(maps["masses"]):

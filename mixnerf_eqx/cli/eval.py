@@ -27,6 +27,7 @@ from .._inference.evaluation import Rendered, evaluate
 from .._predictive.exports import write_depth_exports
 from .._predictive.recalibration import METHODS, Recalibration
 from .._predictive.uncertainty import (
+    depths_are_ray_distances,
     calibration_report,
     coverage_report,
     fit_recalibration,
@@ -99,8 +100,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         choices=METHODS,
         default=None,
         help="with --uncertainty: how the intervals are recalibrated, fitted on the scene's validation "
-        "views: conformal (a coverage guarantee for exchangeable pixels; the default), isotonic, or raw "
-        "(the model's own intervals, no validation views needed)",
+        "views: conformal (a coverage guarantee for exchangeable pixels; the default where the scene has "
+        "validation views and they are not the views scored), isotonic, or raw (the model's own intervals)",
     )
     parser.add_argument("--no-lpips", action="store_true", help="skip LPIPS (and the average)")
     add_typecheck_argument(parser)
@@ -158,7 +159,7 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
         report = result["uncertainty"]
         calibrated = report["calibration"]
         coverage = ", ".join(
-            f"{mass}: {value['pooled']:.3f} (raw {report['raw_coverage'][mass]:.3f})"
+            f"{mass}: {value['pooled']:.3f} (raw {report['coverage'][mass]['mean']:.3f})"
             for mass, value in calibrated["colour_coverage"].items()
         )
         depth = "n/a" if report["depth_ause"] is None else f"{report['depth_ause']:.4f}"
@@ -184,6 +185,8 @@ def run(args: argparse.Namespace) -> dict:
     run_dir = args.run_dir
     restored = restore_run(run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
     config, dataset = restored.config, restored.dataset
+    if args.uncertainty:  # before anything is rendered: what the intervals can be fitted on
+        args.calibration = _calibration_method(restored, args.calibration, args.split)
     grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
     chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
     views = dataset.split(args.split)  # a split the scene lacks: one line, status 2
@@ -246,7 +249,6 @@ def run(args: argparse.Namespace) -> dict:
                 temperature=args.temperature,
                 renders=not args.no_renders,
                 method=args.calibration,
-                split=args.split,
             )
         (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
         raise_if_interrupted()  # a Ctrl-C during the evaluation stops it before the replacement
@@ -310,21 +312,39 @@ def _put_in_place(staging: Path, final: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _recalibration(restored: Run, chunk: int, *, method: str, temperature: float, split: str) -> Recalibration:
-    """`method` fitted on the scene's validation views (never on the views being scored)."""
-    if method == "raw":
-        return Recalibration.raw()
-    if split == "val":
+def _calibration_method(restored: Run, asked: str | None, split: str) -> str:
+    """The recalibration `eval --uncertainty` fits, checked before anything is rendered: the
+    one asked for, or by default conformal where the scene has validation views that are not
+    the views being scored (else the model's own intervals, said in one line)."""
+    if restored.model.mixture is None:
+        raise ConfigError("--uncertainty reads the mixture: this run's model (the mip-NeRF baseline) has none")
+    dataset = restored.dataset
+    has_val = dataset.val is not None and dataset.val.num_views > 0
+    if asked is None:
+        if split == "val" or not has_val:
+            why = "the views scored are the validation views" if split == "val" else f"{dataset.name} has no validation views"
+            print(f"uncertainty: the model's own intervals ({why}, which recalibration is fitted on)")
+            return "raw"
+        return "conformal"
+    if asked != "raw" and split == "val":
         raise ConfigError(
-            f"--calibration {method} is fitted on the validation views, so it cannot score them: "
+            f"--calibration {asked} is fitted on the validation views, so it cannot score them: "
             "use --calibration raw with --split val"
         )
-    dataset = restored.dataset
-    if dataset.val is None or dataset.val.num_views == 0:
+    if asked != "raw" and not has_val:
         raise ConfigError(
             f"{dataset.name} has no validation views to calibrate the intervals on ({dataset.val_source}): "
             "give --calibration raw for the model's own intervals"
         )
+    return asked
+
+
+def _recalibration(restored: Run, chunk: int, *, method: str, temperature: float) -> Recalibration:
+    """`method` fitted on the scene's validation views (never on the views being scored;
+    `_calibration_method` checked that)."""
+    if method == "raw":
+        return Recalibration.raw()
+    dataset = restored.dataset
     try:
         return fit_recalibration(
             restored.model,
@@ -341,12 +361,12 @@ def _recalibration(restored: Run, chunk: int, *, method: str, temperature: float
 
 
 def _uncertainty(
-    restored: Run, views, chunk: int, out: Path, *, temperature: float, renders: bool, method: str, split: str
+    restored: Run, views, chunk: int, out: Path, *, temperature: float, renders: bool, method: str
 ) -> dict:
     """The predictive pass over `views`, its intervals recalibrated by `method`: maps (PNGs
     unless `renders` is false, arrays in `uncertainty.npz`, depth `.npy` and point clouds) and
     the calibration measures."""
-    recalibration = _recalibration(restored, chunk, method=method, temperature=temperature, split=split)
+    recalibration = _recalibration(restored, chunk, method=method, temperature=temperature)
     started = time.perf_counter()
     dataset = restored.dataset
     maps = predict_views(
@@ -364,13 +384,19 @@ def _uncertainty(
     write_depth_exports(out, views, maps, near=dataset.near, far=dataset.far)
     if renders:
         write_uncertainty_maps(out, views, maps, near=dataset.near, far=dataset.far)
-    report = calibration_report(maps, views.images, views.depths)
-    report["calibration"] = coverage_report(maps, views.images, views.depths, recalibration)
-    report["calibration"]["levels"] = recalibration.to_json()
-    # The model's own intervals, read from the distribution functions at the truths: the
-    # central interval of mass m covers a truth whose PIT value u has |2u - 1| <= m.
+    # True depths count where they are distances along the rendered rays (not NDC, DTU's planes).
+    depths = views.depths if depths_are_ray_distances(views) else None
+    report = calibration_report(maps, views.images, depths)
+    # "coverage" stays the model's own intervals' (beside the raw NLL), read from the
+    # distribution functions at the truths: the central interval of mass m covers a truth
+    # whose PIT value u has |2u - 1| <= m. "calibration" has the recalibrated intervals'.
     scores = np.abs(2.0 * maps["colour_cdf"].astype(np.float64) - 1.0)
-    report["raw_coverage"] = {f"{m:g}": float(np.mean(scores <= m)) for m in recalibration.masses}
+    report["coverage"] = {}
+    for mass in recalibration.masses:
+        per_channel = (scores <= mass).reshape(-1, scores.shape[-1]).mean(axis=0)
+        report["coverage"][f"{mass:g}"] = {"per_channel": per_channel.tolist(), "mean": float(per_channel.mean())}
+    report["calibration"] = coverage_report(maps, views.images, depths, recalibration)
+    report["calibration"]["levels"] = recalibration.to_json()
     report["temperature"] = temperature
     report["seconds_per_frame"] = seconds / max(views.num_views, 1)
     return report
@@ -383,8 +409,6 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ConfigError("--temperature scales the predictive distribution: it needs --uncertainty")
     if args.calibration is not None and not args.uncertainty:
         raise ConfigError("--calibration recalibrates the predictive intervals: it needs --uncertainty")
-    if args.calibration is None:
-        args.calibration = "conformal"
     if args.temperature is None:
         args.temperature = 1.0
     if not (math.isfinite(args.temperature) and np.finfo(np.float32).tiny <= args.temperature):

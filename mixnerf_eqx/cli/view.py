@@ -94,15 +94,19 @@ def viewer_recalibration(run, method: str) -> Recalibration | None:
     if dataset.val is None or dataset.val.num_views == 0:
         print(f"{dataset.name} has no validation views: the interval modes show the model's own intervals")
         return None
-    recalibration = fit_recalibration(
-        run.model,
-        dataset.val,
-        dataset.near,
-        dataset.far,
-        method,
-        chunk=run.config.train.render_chunk,
-        description=f"the {dataset.val.num_views} validation views",
-    )
+    try:
+        recalibration = fit_recalibration(
+            run.model,
+            dataset.val,
+            dataset.near,
+            dataset.far,
+            method,
+            chunk=run.config.train.render_chunk,
+            description=f"the {dataset.val.num_views} validation views",
+        )
+    except ValueError as error:  # too few validation pixels for the masses
+        print(f"interval modes: the model's own intervals ({method} could not be fitted: {error})")
+        return None
     print(f"interval modes: {method} intervals fitted on {recalibration.fitted_on}")
     return recalibration
 
