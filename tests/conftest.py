@@ -13,7 +13,7 @@ import pytest  # noqa: E402
 from helpers import TINY_OVERRIDES
 from hypothesis import settings
 
-from mixnerf_eqx import load_config
+from mixnerf_eqx import fit, load_config
 from mixnerf_eqx.data import load_dataset
 
 # CI runs the property tests on a fixed sequence of examples, so that a red run can be
@@ -54,3 +54,16 @@ def tiny_config(tmp_path):
 def tiny_scene():
     config = load_config("builtin", TINY_OVERRIDES)
     return load_dataset(config.data)
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory, tiny_scene):
+    """A run folder of the tiny config trained for 60 steps (the tiny scene has validation
+    views), and its model: enough for the predictive pass to see something."""
+    config = load_config("builtin", TINY_OVERRIDES)
+    run_dir = tmp_path_factory.mktemp("short") / "run"
+    config = dataclasses.replace(
+        config, train=dataclasses.replace(config.train, run_dir=str(run_dir), max_steps=60, eval_every=0)
+    )
+    model = fit(config, dataset=tiny_scene, progress=False, write_renders=False).model
+    return run_dir, model

@@ -1,7 +1,6 @@
 """The view to capture next: candidate checks, the ranking's contract, the farthest-camera
 baseline (closed form) and the command."""
 
-import dataclasses
 import json
 
 import numpy as np
@@ -11,19 +10,6 @@ import mixnerf_eqx as mx
 from mixnerf_eqx._predictive.next_view import _small, check_candidate_poses
 from mixnerf_eqx.cli.next_view import main as next_view_main
 from mixnerf_eqx.data import Views, builtin_views_at, rays_at_poses
-
-
-@pytest.fixture(scope="module")
-def short_run(tmp_path_factory, tiny_scene):
-    from helpers import TINY_OVERRIDES
-
-    config = mx.load_config("builtin", TINY_OVERRIDES)
-    run_dir = tmp_path_factory.mktemp("next_view") / "run"
-    config = dataclasses.replace(
-        config, train=dataclasses.replace(config.train, run_dir=str(run_dir), max_steps=60, eval_every=0)
-    )
-    model = mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False).model
-    return run_dir, model
 
 
 def test_candidate_poses_that_are_not_rotations_are_named():

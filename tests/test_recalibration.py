@@ -138,9 +138,7 @@ def test_isotonic_density_at_an_atom_is_the_neighbouring_segments():
 
 
 def test_calibration_pixels_are_drawn_per_view_and_depths_kept_where_finite(short_run, tiny_scene):
-    from mixnerf_eqx._train.run_folder import restore_run
-
-    model = restore_run(short_run).model
+    _, model = short_run
     val = tiny_scene.val
     pixels = val.num_views * val.height * val.width
     every = mx.calibration_pit(model, val, tiny_scene.near, tiny_scene.far, max_pixels=None)
@@ -159,10 +157,9 @@ def test_levels_carry_their_masses_and_a_new_calibration_compiles_nothing(short_
     import equinox as eqx
 
     from mixnerf_eqx._predictive import uncertainty as _uncertainty
-    from mixnerf_eqx._train.run_folder import restore_run
     from mixnerf_eqx.data import rays_for_views
 
-    model = restore_run(short_run).model
+    _, model = short_run
     once = eqx.filter_jit(eqx.debug.assert_max_traces(_uncertainty._summarise_rays, max_traces=1))
     monkeypatch.setattr(_uncertainty, "_summarise_chunk", once)
     view = tiny_scene.test.select([0])
@@ -265,25 +262,12 @@ def test_ndc_round_trip_of_world_points_from_a_turned_and_moved_camera():
     np.testing.assert_allclose(depth, along, rtol=2e-5)
 
 
-@pytest.fixture(scope="module")
-def short_run(tmp_path_factory, tiny_scene):
-    from helpers import TINY_OVERRIDES
-
-    config = mx.load_config("builtin", TINY_OVERRIDES)
-    run_dir = tmp_path_factory.mktemp("recalibration") / "run"
-    config = dataclasses.replace(
-        config, train=dataclasses.replace(config.train, run_dir=str(run_dir), max_steps=60, eval_every=0)
-    )
-    mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False)
-    return run_dir
-
-
 def test_eval_recalibrates_on_validation_views_and_exports_depth_and_points(short_run, tiny_scene, tmp_path, capsys):
     trimesh = pytest.importorskip("trimesh")
     from mixnerf_eqx.cli.eval import main as eval_main
 
     out = tmp_path / "eval"
-    common = [str(short_run), "--max-views", "2", "--no-lpips", "--no-progress", "--no-renders"]
+    common = [str(short_run[0]), "--max-views", "2", "--no-lpips", "--no-progress", "--no-renders"]
     assert eval_main([*common, "--out", str(out), "--uncertainty"]) == 0
     printed = capsys.readouterr().out
     assert "conformal intervals (fitted on the" in printed and "validation views" in printed
