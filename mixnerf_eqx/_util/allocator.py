@@ -38,7 +38,7 @@ from pathlib import Path
 
 ALLOCATOR_ENV = "MIXNERF_ALLOCATOR"
 # The commands that start themselves again (`python -m mixnerf_eqx.<name>`).
-COMMANDS = ("train", "eval", "render", "sweep", "view")
+COMMANDS = ("train", "eval", "render", "sweep", "view", "next_view")
 # Set in the environment of the process started again: whether `LD_PRELOAD` was set (empty)
 # before, to restore once the allocator is in effect, and a mark that stops a second start if
 # the preload did not work.
