@@ -326,3 +326,69 @@ def test_recalibration_round_trips_through_json():
     levels = fitted.interval_levels()
     assert levels.colour_lower.shape == (4, 3) and levels.depth_lower.shape == (4,)
     assert jax.tree_util.tree_structure(levels) == jax.tree_util.tree_structure(mx.IntervalLevels.raw(MASSES))
+
+
+def test_a_conformal_mass_of_one_gives_an_interval_without_bound():
+    from test_predictive import as_mixture, random_mixtures
+
+    # 30% of the calibration truths lie where the model puts no mass (PIT values of exactly
+    # 1): the 90% interval must cover them too, so its ends are unbounded; the 50% one not.
+    pit = np.concatenate([np.random.default_rng(9).uniform(size=(840, 3)), np.ones((360, 3))])
+    fitted = Recalibration.fit("conformal", pit, pit[:, 0], masses=(0.5, 0.9))
+    assert fitted.unbounded_masses() == {"colour": [0.9], "depth": [0.9]}
+    assert np.all(fitted.colour_lower[1] == 0.0) and np.all(fitted.colour_upper[1] == 1.0)
+    coefficients, location, scale = random_mixtures(np.random.default_rng(10), 5, 4)
+    weights = jnp.asarray(np.random.default_rng(11).uniform(0.1, 1.0, (5, 4)), jnp.float32)
+    edges = jnp.broadcast_to(jnp.linspace(2.0, 6.0, 5, dtype=jnp.float32), (5, 5))
+    prediction = mx.Predictive(
+        colour=as_mixture(coefficients, location, scale),
+        depth=mx.TerminationDistribution(weights, edges),
+        rgb=jnp.zeros((5, 3)),
+        render_depth=jnp.zeros((5,)),
+        acc=jnp.ones((5,)),
+    )
+    summary = mx.summarise(prediction, (0.5, 0.9), levels=fitted.interval_levels())
+    assert np.all(np.asarray(summary.colour_lower[1]) <= 0.0) and np.all(np.asarray(summary.colour_upper[1]) >= 1.0)
+    np.testing.assert_array_equal(np.asarray(summary.depth_lower[1]), 2.0)
+    np.testing.assert_array_equal(np.asarray(summary.depth_upper[1]), 6.0)
+    # The bounded mass is solved as before.
+    raw = mx.summarise(prediction, (0.5, 0.9))
+    assert np.all(np.asarray(summary.colour_upper[0]) <= np.asarray(raw.colour_upper[1]) + 1e-6)
+
+
+def test_eval_replaces_only_folders_it_wrote(short_run, tmp_path, capsys):
+    from mixnerf_eqx.cli import eval as eval_module
+    from mixnerf_eqx.cli.eval import main as eval_main
+
+    common = [str(short_run[0]), "--max-views", "1", "--no-lpips", "--no-progress", "--no-renders"]
+    # A folder of the user's that holds only the kinds of file eval writes.
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in ("holiday.png", "settings.json", "mesh.ply"):
+        (photos / name).write_text("mine")
+    assert eval_main([*common, "--out", str(photos)]) == 2
+    assert "holds files eval did not write" in capsys.readouterr().err
+    assert sorted(p.name for p in photos.iterdir()) == ["holiday.png", "mesh.ply", "settings.json"]
+    # Folders beside --out that eval did not write are left alone, and in the way is an error.
+    results = tmp_path / "results"
+    for sibling in ("results.old", "results.partial"):
+        (tmp_path / sibling).mkdir()
+        (tmp_path / sibling / "thesis.tex").write_text("mine")
+    assert eval_main([*common, "--out", str(results)]) == 2
+    assert "eval did not write it" in capsys.readouterr().err
+    assert (tmp_path / "results.old" / "thesis.tex").is_file() and (tmp_path / "results.partial" / "thesis.tex").is_file()
+    assert not results.exists()
+    # Its own output it replaces; a Ctrl-C after the results are in place says so.
+    mine = tmp_path / "mine"
+    assert eval_main([*common, "--out", str(mine)]) == 0
+    assert eval_main([*common, "--out", str(mine)]) == 0
+
+    def interrupted(run_dir):
+        raise KeyboardInterrupt
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(eval_module, "plot_curves", interrupted)
+        assert eval_main([*common, "--out", str(mine)]) == 130
+    err = capsys.readouterr().err
+    assert "the evaluation's results are in place" in err and "nothing was changed" not in err
+    assert (mine / "metrics.json").is_file()

@@ -713,7 +713,10 @@ class IntervalLevels(eqx.Module):
     """The quantile levels that bound each central interval, per interval mass: the raw
     `(1 - mass) / 2` and `(1 + mass) / 2`, or levels a recalibration moved
     (`mixnerf_eqx.Recalibration.interval_levels`). Arrays, so a new calibration recompiles
-    nothing.
+    nothing. A level of exactly 0 or 1 is an end without bound (a recalibration that had to
+    cover truths outside the distribution's support): the interval reaches the colour range's
+    end (0 or 1, or beyond where the mixture's own extreme quantile lies) or the ray's first
+    or last edge.
 
     **Fields:**
 
@@ -740,6 +743,26 @@ class IntervalLevels(eqx.Module):
             depth_lower=jnp.asarray(lower, jnp.float32),
             depth_upper=jnp.asarray(upper, jnp.float32),
         )
+
+
+# The most extreme level a quantile is solved at (an end without bound is widened after).
+_EXTREME_LEVEL = 1e-6
+
+
+def _unbounded_ends(colour_quantiles, depth_quantiles, colour_levels, depth_levels, t_edges):
+    """The quantiles with every end of level 0 or 1 (see `IntervalLevels`) widened: a colour
+    end to the colour range's end, 0 or 1 (or the mixture's extreme quantile beyond it), a
+    depth end to the ray's first or last edge."""
+    batch = colour_quantiles.ndim - 2  # the levels' axis in front, the channels' behind
+    shape = (colour_levels.shape[0], *([1] * batch), colour_levels.shape[1])
+    colour_low, colour_high = (colour_levels <= 0).reshape(shape), (colour_levels >= 1).reshape(shape)
+    colour_quantiles = jnp.where(colour_low, jnp.minimum(colour_quantiles, 0.0), colour_quantiles)
+    colour_quantiles = jnp.where(colour_high, jnp.maximum(colour_quantiles, 1.0), colour_quantiles)
+    depth_shape = (depth_levels.shape[0], *([1] * batch))
+    depth_low, depth_high = (depth_levels <= 0).reshape(depth_shape), (depth_levels >= 1).reshape(depth_shape)
+    depth_quantiles = jnp.where(depth_low, t_edges[..., 0][None], depth_quantiles)
+    depth_quantiles = jnp.where(depth_high, t_edges[..., -1][None], depth_quantiles)
+    return colour_quantiles, depth_quantiles
 
 
 def summarise(
@@ -774,12 +797,16 @@ def summarise(
             f"levels must hold {count} interval masses ({channels} colour channels); got colour levels of "
             f"shape {levels.colour_lower.shape} and depth levels of shape {levels.depth_lower.shape}"
         )
-    # One batched solve for every level: the median, then each interval's two ends.
+    # One batched solve for every level: the median, then each interval's two ends (an end
+    # without bound solved at the extreme level, then widened below).
     half = jnp.full((1, channels), 0.5, dtype)
     colour_levels = jnp.concatenate([half, levels.colour_lower, levels.colour_upper]).astype(dtype)
     depth_levels = jnp.concatenate([half[0, :1], levels.depth_lower, levels.depth_upper]).astype(dtype)
-    colour_quantiles = colour.channel_quantiles(colour_levels)
-    depth_quantiles = depth.quantiles(depth_levels)
+    colour_quantiles = colour.channel_quantiles(jnp.clip(colour_levels, _EXTREME_LEVEL, 1.0 - _EXTREME_LEVEL))
+    depth_quantiles = depth.quantiles(jnp.clip(depth_levels, _EXTREME_LEVEL, 1.0 - _EXTREME_LEVEL))
+    colour_quantiles, depth_quantiles = _unbounded_ends(
+        colour_quantiles, depth_quantiles, colour_levels, depth_levels, depth.t_edges
+    )
     return PredictiveSummary(
         masses=masses,
         colour_mean=colour.mean(),

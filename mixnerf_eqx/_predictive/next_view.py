@@ -60,8 +60,15 @@ def check_candidate_poses(camtoworlds) -> Float[np.ndarray, "num_views 3 4"]:
     """`camtoworlds` as a float64 `(n, 3, 4)` array (a `(n, 4, 4)` one loses its last row), or a
     `ValueError` that names the first bad pose: not finite, or a rotation part that is not a
     rotation (orthonormal with determinant +1, to 1e-3)."""
-    poses = np.asarray(camtoworlds, np.float64)
+    given = np.asarray(camtoworlds)
+    if given.dtype.kind not in "fiu":
+        raise ValueError(f"candidate poses must be real numbers, got an array of {given.dtype}")
+    poses = given.astype(np.float64)
     if poses.ndim == 3 and poses.shape[1:] == (4, 4):
+        bottom = poses[:, 3]
+        bad = np.flatnonzero(np.abs(bottom - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > _ROTATION_TOLERANCE)
+        if bad.size:
+            raise ValueError(f"candidate pose {bad[0]} is a 4 x 4 matrix whose last row is not [0, 0, 0, 1]")
         poses = poses[:, :3]
     if poses.ndim != 3 or poses.shape[1:] != (3, 4) or poses.shape[0] == 0:
         raise ValueError(
@@ -69,8 +76,10 @@ def check_candidate_poses(camtoworlds) -> Float[np.ndarray, "num_views 3 4"]:
             f"got shape {poses.shape}"
         )
     for index, pose in enumerate(poses):
-        if not np.all(np.isfinite(pose)):
-            raise ValueError(f"candidate pose {index} is not finite")
+        with np.errstate(over="ignore"):
+            finite = np.all(np.isfinite(pose.astype(np.float32)))
+        if not finite:
+            raise ValueError(f"candidate pose {index} is not finite (in float32, which the rays are made in)")
         rotation = pose[:, :3]
         if (
             np.abs(rotation.T @ rotation - np.eye(3)).max() > _ROTATION_TOLERANCE

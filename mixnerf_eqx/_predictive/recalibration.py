@@ -42,9 +42,6 @@ METHODS = ("raw", "isotonic", "conformal")
 # ends 0 and 1): finer than any coverage figure reads, and small enough to store in JSON.
 ISOTONIC_KNOTS = 512
 
-# Interval levels stay inside float32's open unit interval: a conformal mass of 1 (a PIT value
-# that rounded to 0 or 1) becomes the widest interval the quantile solver can bracket.
-_LEVEL_FLOOR = 1e-6
 # How far past [0, 1] a float32 distribution function may round.
 _ROUNDING = 1e-4
 
@@ -240,7 +237,10 @@ class Recalibration:
             if depth_count and depth_count >= max(minimum_calibration_pixels(m) for m in masses):
                 depth_spread = conformal_masses(depth, masses)[:, 0]
                 depth_lower, depth_upper = 0.5 * (1.0 - depth_spread), 0.5 * (1.0 + depth_spread)
-        clip = lambda x: np.clip(x, _LEVEL_FLOOR, 1.0 - _LEVEL_FLOOR)  # noqa: E731
+        # A level of 0 or 1 is an end without bound (`IntervalLevels`): a conformal mass of 1,
+        # where calibration truths lay outside the distribution's support (PIT values of 0 or
+        # 1), must cover such truths too.
+        clip = lambda x: np.clip(x, 0.0, 1.0)  # noqa: E731
         return Recalibration(
             method,
             masses,
@@ -254,6 +254,16 @@ class Recalibration:
             depth_pixels=depth_count,
             fitted_on=fitted_on,
         )
+
+    def unbounded_masses(self) -> dict[str, list[float]]:
+        """The masses whose colour (any channel) or depth interval has an end without bound:
+        the calibration pixels needed the whole range there (`IntervalLevels`)."""
+        colour = (self.colour_lower <= 0).any(axis=1) | (self.colour_upper >= 1).any(axis=1)
+        depth = (self.depth_lower <= 0) | (self.depth_upper >= 1)
+        return {
+            "colour": [mass for mass, full in zip(self.masses, colour) if full],
+            "depth": [mass for mass, full in zip(self.masses, depth) if full],
+        }
 
     def interval_levels(self) -> IntervalLevels:
         """The levels `predict_rays` and `summarise` bound the intervals with."""

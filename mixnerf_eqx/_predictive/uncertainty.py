@@ -463,7 +463,8 @@ def coverage_report(
 
     **Returns:**
 
-    A JSON-ready dict: the method and what it was fitted on; per interval mass, the colour
+    A JSON-ready dict: the method and what it was fitted on, the masses whose intervals have
+    an end without bound (`Recalibration.unbounded_masses`); per interval mass, the colour
     coverage pooled over every pixel and channel, its range over the views, and the mean
     interval width; the same for depth where true depths are known; FlipNeRF's NLL (the
     per-channel marginal densities, recalibrated for isotonic, averaged over pixels and
@@ -509,6 +510,7 @@ def coverage_report(
     return {
         "method": recalibration.method,
         "fitted_on": recalibration.fitted_on,
+        "unbounded": recalibration.unbounded_masses(),
         "colour_coverage": colour,
         "depth_coverage": depth_coverage,
         "nll_per_channel": float(-np.mean(log_density)),

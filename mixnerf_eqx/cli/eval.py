@@ -13,6 +13,7 @@ draws the run's training curves from its log into `RUN_DIR/curves.png` (with mat
 """
 
 import argparse
+import json
 import math
 import shutil
 import sys
@@ -163,6 +164,10 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
             for mass, value in calibrated["colour_coverage"].items()
         )
         depth = "n/a" if report["depth_ause"] is None else f"{report['depth_ause']:.4f}"
+        depth_coverage = calibrated["depth_coverage"]
+        if depth_coverage is not None:
+            depth_cells = ", ".join(f"{mass}: {value['pooled']:.3f}" for mass, value in depth_coverage.items())
+            coverage += f"; depth coverage {depth_cells}"
         how = (
             "the model's own intervals"
             if calibrated["method"] == "raw"
@@ -175,6 +180,14 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
             f"{depth}; {report['seconds_per_frame']:.2f} s per frame; arrays: {out / 'uncertainty.npz'}, "
             f"depth (.npy) and point clouds (.ply) per view"
         )
+    unbounded = result.get("uncertainty", {}).get("calibration", {}).get("unbounded", {})
+    for what, masses in unbounded.items():
+        if masses:
+            listed = ", ".join(f"{mass:g}" for mass in masses)
+            print(
+                f"note: the {what} intervals of mass {listed} span the whole range: too many validation truths "
+                "fell outside the model's predictive distribution for a narrower interval to hold that mass"
+            )
     print(f"metrics: {out / 'metrics.json'}")
     if renders:
         print(f"renders: {out}")
@@ -256,6 +269,7 @@ def run(args: argparse.Namespace) -> dict:
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)  # the results there were stay whole
         raise
+    args.results_in_place = final  # what a Ctrl-C from here on says
     _print_summary(result, grid, choice, final, not args.no_renders)
     # After the results are in place: the run's training curves, beside its log.
     curves = plot_curves(run_dir)
@@ -269,43 +283,74 @@ def run(args: argparse.Namespace) -> dict:
 
 
 # What eval writes: a folder holding anything else is not replaced (`--out` may name a folder
-# of the user's).
+# of the user's), and a folder is eval's only where its marker (or an eval's metrics.json, from
+# before the marker) says so.
 _EVAL_SUFFIXES = {".png", ".json", ".npz", ".npy", ".ply"}
+_MARKER = ".mixnerf_eval"
+
+
+def _written_by_eval(folder: Path) -> bool:
+    """Whether `folder` is an evaluation's output: it holds eval's marker, or an eval's
+    `metrics.json` (with its run and per-view entries) and nothing but eval's kinds of file."""
+    if not folder.is_dir():
+        return False
+    if (folder / _MARKER).is_file():
+        return True
+    metrics = folder / "metrics.json"
+    try:
+        written = json.loads(metrics.read_text())
+    except (OSError, ValueError):
+        return False
+    if not isinstance(written, dict) or not {"run_dir", "per_view", "split"} <= set(written):
+        return False
+    return all(p.is_file() and p.suffix in _EVAL_SUFFIXES for p in folder.iterdir())
 
 
 def _staging_folder(final: Path) -> Path:
     """A fresh folder beside `final` that receives every file of this evaluation; it replaces
     `final` only when all are written (`_put_in_place`), so that an interrupted or failed
-    evaluation leaves the results there were whole."""
+    evaluation leaves the results there were whole. Only folders eval wrote are ever replaced
+    or removed."""
     _recover(final)
-    if final.exists():
-        foreign = [p.name for p in final.iterdir() if not (p.is_file() and p.suffix in _EVAL_SUFFIXES)]
-        if not final.is_dir() or foreign:
-            raise ConfigError(
-                f"{final} holds files eval did not write ({', '.join(sorted(foreign)[:3]) or 'it is a file'}): "
-                "give --out a new or empty folder"
-            )
+    if final.exists() and not (final.is_dir() and not any(final.iterdir())) and not _written_by_eval(final):
+        foreign = [p.name for p in final.iterdir()] if final.is_dir() else []
+        listed = ", ".join(sorted(foreign)[:3]) or "it is a file"
+        raise ConfigError(
+            f"{final} holds files eval did not write ({listed}): give --out a new or empty folder"
+        )
     staging = final.with_name(final.name + ".partial")
-    shutil.rmtree(staging, ignore_errors=True)
+    if staging.exists():
+        if not _written_by_eval(staging) and any(staging.iterdir() if staging.is_dir() else [staging]):
+            raise ConfigError(f"{staging} exists and eval did not write it: move it away, or give another --out")
+        shutil.rmtree(staging, ignore_errors=True)
     try:
         staging.mkdir(parents=True)
     except PermissionError:
         raise ConfigError(f"{final.parent} is not writable: give --out a folder you can write to") from None
+    except FileExistsError:
+        raise ConfigError(f"{staging} is in the way (a file): move it away, or give another --out") from None
+    (staging / _MARKER).write_text("written by python -m mixnerf_eqx.eval\n")
     return staging
 
 
 def _recover(final: Path) -> None:
-    """Undoes a replacement cut short between its two renames (the old results come back)."""
+    """Undoes a replacement cut short between its two renames (the old results come back).
+    Only a `.old` folder that eval wrote is touched."""
     old = final.with_name(final.name + ".old")
-    if old.exists() and not final.exists():
+    if not _written_by_eval(old):
+        return
+    if not final.exists():
         old.rename(final)
-    shutil.rmtree(old, ignore_errors=True)
+    else:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def _put_in_place(staging: Path, final: Path) -> None:
     """Replaces `final` by `staging`: rename the old folder aside, the new one into place, and
     remove the old one."""
     old = final.with_name(final.name + ".old")
+    if old.exists():  # not eval's (`_recover` took eval's): in the way
+        raise ConfigError(f"{old} exists and eval did not write it: move it away, or give another --out")
     if final.exists():
         final.rename(old)
     staging.rename(final)
@@ -402,6 +447,10 @@ def _uncertainty(
     return report
 
 
+# The temperatures eval accepts: far wider than any fitted one (0.9 to 1.5 in the benchmarks).
+_TEMPERATURES = (1e-3, 1e3)
+
+
 def _check_arguments(args: argparse.Namespace) -> None:
     if args.chunk is not None and args.chunk < 1:
         raise ConfigError(f"--chunk must be a positive number of rays, got {args.chunk}")
@@ -411,10 +460,10 @@ def _check_arguments(args: argparse.Namespace) -> None:
         raise ConfigError("--calibration recalibrates the predictive intervals: it needs --uncertainty")
     if args.temperature is None:
         args.temperature = 1.0
-    if not (math.isfinite(args.temperature) and np.finfo(np.float32).tiny <= args.temperature):
+    if not (math.isfinite(args.temperature) and _TEMPERATURES[0] <= args.temperature <= _TEMPERATURES[1]):
         raise ConfigError(
-            f"--temperature must be a finite positive number, at least 1.18e-38 (a normal float32), "
-            f"got {args.temperature:g}"
+            f"--temperature must lie in [{_TEMPERATURES[0]:g}, {_TEMPERATURES[1]:g}] (a factor on every beta; "
+            f"beyond that the scales leave float32's range), got {args.temperature:g}"
         )
     if args.max_views < 0:
         raise ConfigError(f"--max-views must be 0 (all test views) or positive, got {args.max_views}")
@@ -423,11 +472,24 @@ def _check_arguments(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
 
+    args.results_in_place = None
+
     def body() -> None:
         _check_arguments(args)
-        run(args)
+        try:
+            run(args)
+        except KeyboardInterrupt:
+            if args.results_in_place is None:
+                print("\ninterrupted: evaluation stopped; nothing was changed in the run", file=sys.stderr)
+            else:
+                print(
+                    f"\ninterrupted: the evaluation's results are in place in {args.results_in_place}; the "
+                    "training curves were not drawn",
+                    file=sys.stderr,
+                )
+            raise
 
-    return run_command(args, body, interrupted="evaluation stopped; nothing was changed in the run")
+    return run_command(args, body)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._predictive.next_view import SCORES, farthest_first, next_view
+from .._predictive.next_view import SCORES, check_candidate_poses, farthest_first, next_view
 from .._train.run_folder import restore_run
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.typecheck import add_typecheck_argument
@@ -37,7 +37,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _candidates(run, poses_file: Path | None) -> tuple[np.ndarray, list[str]]:
     if poses_file is not None:
-        poses = np.load(poses_file, allow_pickle=False)
+        try:
+            poses = np.load(poses_file, allow_pickle=False)
+        except FileNotFoundError:
+            raise ValueError(f"--poses {poses_file}: no such file") from None
+        except (ValueError, OSError, EOFError) as error:
+            raise ValueError(
+                f"--poses {poses_file}: not a .npy array of camera-to-world matrices ({error})"
+            ) from None
+        if not isinstance(poses, np.ndarray):
+            poses.close()
+            raise ValueError(f"--poses {poses_file}: give a .npy file holding one array, not an .npz archive")
+        poses = check_candidate_poses(poses)
         return poses, [f"pose {index}" for index in range(len(poses))]
     val = run.dataset.val
     if val is None or val.num_views == 0:

@@ -89,7 +89,10 @@ def viewer_recalibration(run, method: str) -> Recalibration | None:
     views, said in one line; `None` (the model's own) for a baseline, `raw`, or a scene without
     validation views."""
     dataset = run.dataset
-    if run.model.mixture is None or method == "raw":
+    if run.model.mixture is None:
+        return None
+    if method == "raw":
+        print("interval modes: the model's own intervals (--calibration raw)")
         return None
     if dataset.val is None or dataset.val.num_views == 0:
         print(f"{dataset.name} has no validation views: the interval modes show the model's own intervals")
