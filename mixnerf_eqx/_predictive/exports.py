@@ -24,11 +24,12 @@ _NDC_NEAR = 1.0
 
 
 def world_points(
-    views: Views, index: int, t: Float[np.ndarray, "height width"], near: float, far: float
-) -> tuple[Float[np.ndarray, "height width 3"], Float[np.ndarray, "height width"]]:
-    """The world points at ray distance `t` along view `index`'s rays, and their camera
-    z-depths (distance along the camera's viewing axis, scene units). For an NDC scene, `t = 1`
-    (the far bound, infinitely far) gives a NaN point and an infinite depth."""
+    views: Views, index: int, t: Float[np.ndarray, "*stack height width"], near: float, far: float
+) -> tuple[Float[np.ndarray, "*stack height width 3"], Float[np.ndarray, "*stack height width"]]:
+    """The world points at ray distance `t` along view `index`'s rays (any stack of maps in
+    front: the rays are built once), and their camera z-depths (distance along the camera's
+    viewing axis, scene units). For an NDC scene, `t = 1` (the far bound, infinitely far)
+    gives a NaN point and an infinite depth."""
     one = views.select([index])
     rays = rays_for_views(one, near, far)
     origins = np.asarray(rays.origins[0], np.float64)
@@ -69,13 +70,14 @@ def write_depth_exports(
     chosen = _interval_index(maps["masses"])
     for index, view_id in enumerate(views.ids):
         stem = folder / f"test_{view_id:03d}"
-        points, depth = world_points(views, index, maps["depth_median"][index], near, far)
-        ends = np.stack(
-            [
-                np.stack([world_points(views, index, maps[f"depth_{side}"][m, index], near, far)[1] for side in ("lower", "upper")])
-                for m in range(len(maps["masses"]))
-            ]
+        # One conversion for the median and every interval's ends: (1 + 2 masses, H, W).
+        stack = np.concatenate(
+            [maps["depth_median"][index][None], maps["depth_lower"][:, index], maps["depth_upper"][:, index]]
         )
+        all_points, all_depths = world_points(views, index, stack, near, far)
+        points, depth = all_points[0], all_depths[0]
+        count = len(maps["masses"])
+        ends = np.stack([all_depths[1 : 1 + count], all_depths[1 + count :]], axis=1)  # (masses, 2, H, W)
         np.save(f"{stem}_depth.npy", depth.astype(np.float32))
         np.save(f"{stem}_depth_interval.npy", ends.astype(np.float32))
         keep = (maps["acc"][index] >= min_opacity) & np.all(np.isfinite(points), axis=-1) & np.isfinite(depth)
