@@ -24,8 +24,8 @@ _NDC_NEAR = 1.0
 
 
 def world_points(
-    views: Views, index: int, t: Float[np.ndarray, "*stack height width"], near: float, far: float
-) -> tuple[Float[np.ndarray, "*stack height width 3"], Float[np.ndarray, "*stack height width"]]:
+    views: Views, index: int, t: Float[np.ndarray, "*batch height width"], near: float, far: float
+) -> tuple[Float[np.ndarray, "*batch height width 3"], Float[np.ndarray, "*batch height width"]]:
     """The world points at ray distance `t` along view `index`'s rays (any stack of maps in
     front: the rays are built once), and their camera z-depths (distance along the camera's
     viewing axis, scene units). For an NDC scene, `t = 1` (the far bound, infinitely far)
