@@ -210,6 +210,9 @@ class OccupancyConfig:
     )
     segments: int = 4  # rendering: pieces of each level between which finished rays are dropped
     chunk: int = 16384  # rendering with skipping: rays per chunk
+    render_chunk_points: int = 4096  # rendering with skipping: > 0, each level is one compiled
+    # program evaluating chunks of this many points (chunks past the live samples skipped);
+    # 0: buffers sized on the host (a compilation per size)
     # Training that skips (with `enabled`): once every cell has been evaluated, a step evaluates
     # the field only at the samples in occupied cells (and, on the fine level, in front of the
     # point where the coarse transmittance falls below `train_stop_transmittance`), gathered
@@ -355,6 +358,7 @@ _RANGES: tuple[tuple[str, Any, str], ...] = (
     ("occupancy.train_stop_transmittance", *_within(0, 1, high_open=True)),
     ("occupancy.train_headroom", *_within(0, 1)),
     ("occupancy.train_budget_every", *_at_least(1)),
+    ("occupancy.render_chunk_points", *_at_least(0)),
 )
 
 

@@ -192,11 +192,12 @@ def test_frustum_box_holds_every_sample_and_ndc_depth_spans_minus_one_to_one():
     np.testing.assert_allclose([low[2], high[2]], [-1.02, 1.02], atol=1e-4)
 
 
-def test_skipping_nothing_equals_the_dense_render(tiny_config):
+@pytest.mark.parametrize("chunk", [None, 64])
+def test_skipping_nothing_equals_the_dense_render(tiny_config, chunk):
     model = mx.build_model(tiny_config, key=jax.random.key(0))
     rays = _camera_rays(size=12)
     dense = render_rays(model, rays, 100)
-    sparse = render_rays(model, rays, 100, skipping=Skipping(None, 0.0, 3, min_bucket=64))
+    sparse = render_rays(model, rays, 100, skipping=Skipping(None, 0.0, 3, min_bucket=64, chunk=chunk))
     for name in ("rgb", "depth", "acc"):
         np.testing.assert_allclose(getattr(dense, name), getattr(sparse, name), atol=2e-6)
     counts = sparse.counts
@@ -258,7 +259,8 @@ def test_stopping_finished_rays_changes_a_level_by_at_most_the_threshold():
     assert counts.field_evaluations < 0.8 * 256 * 64
 
 
-def test_skipping_renders_the_sphere_within_a_tenth_of_a_db_with_a_third_of_the_work():
+@pytest.mark.parametrize("chunk", [None, 256])
+def test_skipping_renders_the_sphere_within_a_tenth_of_a_db_with_a_third_of_the_work(chunk):
     field = _sphere()
     model = _sphere_model(field)
     rays = _camera_rays(size=40)
@@ -266,7 +268,7 @@ def test_skipping_renders_the_sphere_within_a_tenth_of_a_db_with_a_third_of_the_
     grid = refresh_occupancy(grid, field, key=jax.random.key(0))
     dense = render_rays(model, rays, 512)
     dense_rgb, dense_depth = dense.rgb, dense.depth
-    skipped = render_rays(model, rays, 512, skipping=Skipping(grid, 1e-4, 4))
+    skipped = render_rays(model, rays, 512, skipping=Skipping(grid, 1e-4, 4, chunk=chunk))
     rgb, depth, counts = skipped.rgb, skipped.depth, skipped.counts
     # The dense render is the reference image: the PSNR of the skipped render against it must
     # be high enough that a 0.1 dB change of any test PSNR below 40 dB is impossible.

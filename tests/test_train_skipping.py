@@ -14,8 +14,10 @@ from helpers import TINY_SHARED_OVERRIDES
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError
-from mixnerf_eqx._nn.budget import AbstractOccupancy, SampleBudget, budget_capacity, transmittance_before
+from mixnerf_eqx._nn.budget import AbstractOccupancy, SampleBudget, budget_capacity, evaluate_live, transmittance_before
+from mixnerf_eqx._nn.field import FieldOutputs
 from mixnerf_eqx._train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from mixnerf_eqx._train.loop import _Steps
 from mixnerf_eqx._train.state import budget_bucket, make_train_step, training_cells
 from mixnerf_eqx.data import load_dataset
 
@@ -69,6 +71,43 @@ def test_empty_samples_are_not_evaluated_and_the_rest_are_the_dense_values(grid_
     # Unevaluated samples have zero weight: the mixture is over the samples kept.
     np.testing.assert_array_equal(np.asarray(within.coarse.weights)[~live], 0.0)
     assert int(report.coarse_live) == live.sum() and int(report.dropped) == 0
+
+
+def test_chunks_past_the_live_samples_are_not_evaluated():
+    # The chunked buffer the skipping render uses: only chunks holding a live sample run.
+    calls = []
+
+    def query(means, covs, viewdirs, keys):
+        del covs, viewdirs, keys
+        jax.debug.callback(lambda n: calls.append(int(n)), means.shape[0])
+        return FieldOutputs(density=jnp.sum(means**2, axis=-1), rgb=means, beta=None, ray_depth=None)
+
+    means = jax.random.normal(jax.random.key(0), (10, 8, 3))
+    live = jnp.zeros((10, 8), bool).at[:, 5:].set(True).at[3, 0].set(True)  # 31 of 80
+
+    def density_sum(means):
+        outputs, dropped, made = evaluate_live(
+            query, means, jnp.ones_like(means), jnp.ones((10, 3)), None, live, 80, with_mixture_heads=False, chunk=16
+        )
+        return jnp.sum(outputs.density), (outputs, dropped, made)
+
+    (total, (outputs, dropped, made)), grad = jax.jit(jax.value_and_grad(density_sum, has_aux=True))(means)
+    jax.effects_barrier()
+    # 31 live samples: 2 chunks of 16 evaluated, the other 3 of the 5 skipped.
+    assert calls == [16, 16] and int(made) == 32 and int(dropped) == 0
+    expected = np.where(np.asarray(live), np.sum(np.asarray(means, np.float64) ** 2, axis=-1), 0.0)
+    np.testing.assert_allclose(np.asarray(outputs.density), expected, rtol=1e-6)
+    np.testing.assert_allclose(float(total), expected.sum(), rtol=1e-6)
+    # The values (and their gradient) are those of the live samples only.
+    np.testing.assert_allclose(np.asarray(grad), 2 * np.asarray(means) * np.asarray(live)[..., None], rtol=1e-6)
+    # A chunk longer than the buffer is cut to it; a buffer of every sample evaluates them all.
+    calls.clear()
+    everything = jnp.ones((10, 8), bool)
+    _, _, made = jax.jit(
+        lambda m: evaluate_live(query, m, m, jnp.ones((10, 3)), None, everything, 80, with_mixture_heads=False, chunk=500)
+    )(means)
+    jax.effects_barrier()
+    assert calls == [80] and int(made) == 80
 
 
 def test_a_buffer_too_small_drops_the_farthest_samples_of_every_ray(grid_setup):
@@ -221,10 +260,67 @@ def test_a_grid_that_empties_every_sample_falls_back_to_dense_steps(tiny_config,
     assert "box_radius" in result.metrics["skipping_fallback"]
     log = [json.loads(line) for line in (result.run_dir / "train_log.jsonl").read_text().splitlines()]
     assert any("warning" in entry for entry in log)
-    # Before it, the budgeted step found no live sample; after it, the steps are the dense
-    # step (which logs no sample counts).
+    # The grid is complete after the first step's update; the next measurement (a probe of
+    # the dense step's batch, since full buffers run the dense step) finds no live sample and
+    # warns. No skipping step ever ran (they alone log sample counts).
     warned = next(entry["step"] for entry in log if "warning" in entry)
-    budgeted = [entry for entry in log if "field_evaluations" in entry]
-    assert budgeted and budgeted[-1]["live_samples"] == 0 and budgeted[-1]["step"] == warned
+    assert warned == 2
     assert [entry["step"] for entry in log if "psnr" in entry and entry["step"] > warned]
-    assert not [entry for entry in log if "field_evaluations" in entry and entry["step"] > warned]
+    assert not [entry for entry in log if "field_evaluations" in entry]
+
+
+def _steps_for(config, max_steps=1000):
+    occupancy = dataclasses.replace(config.occupancy, train_skipping=True)
+    train = dataclasses.replace(config.train, max_steps=max_steps)
+    return _Steps(dataclasses.replace(config, occupancy=occupancy, train=train), lambda step: step)
+
+
+def test_a_smaller_buffer_is_compiled_only_when_the_seconds_it_saves_exceed_a_compilation(grid_setup):
+    config, _, _, _ = grid_setup
+    steps = _steps_for(config, max_steps=1000)
+    counts = (100.0, 100.0)  # coarse and fine samples per batch
+    steps.compile_seconds, steps.step_seconds = 5.0, 0.04
+    # Dense (cost 1) to half buffers (cost 0.2 + 0.8 * 0.5 = 0.6) saves 0.4 of 0.04 s a step:
+    # with 900 steps left 14.4 s > 5 s; with 200 left 3.2 s < 5 s.
+    assert steps._pays((0.5, 0.5), counts, done=100)
+    assert not steps._pays((0.5, 0.5), counts, done=800)
+    # Break-even at 5 / (0.04 * 0.4) = 312.5 steps left.
+    assert steps._pays((0.5, 0.5), counts, done=1000 - 313)
+    assert not steps._pays((0.5, 0.5), counts, done=1000 - 312)
+    # The levels weigh by their sample counts.
+    saved = 200 * 0.04 * (1 - (0.2 + 0.8 * (0.25 * 300 + 100) / 400))
+    assert steps._pays((0.25, 1.0), (300.0, 100.0), done=800) is (saved > 5.0)
+    # A program already compiled always pays; so does any before a compilation and a step
+    # have been timed (the buffers then follow the shares).
+    steps.steps[(0.5, 0.5)] = object()
+    assert steps._pays((0.5, 0.5), counts, done=999)
+    assert _steps_for(config)._pays((0.5, 0.5), counts, done=999)
+
+
+def test_full_buffers_run_the_dense_step_and_the_probe_counts_as_a_skipping_step_would(grid_setup):
+    config, _, state, batch = grid_setup
+    grid = eqx.tree_at(lambda g: g.density, state.grid, jnp.zeros_like(state.grid.density).at[:8].set(1e3))
+    occupancy = dataclasses.replace(config.occupancy, train_skipping=True)
+    cells_state = training_cells(dataclasses.replace(state, grid=grid), occupancy)
+    assert cells_state.cells is not None
+    steps = _steps_for(config)
+    new_state, metrics = steps(cells_state, batch)
+    # Full buffers: the dense step (no sample counts), compiled without cells; cells kept.
+    assert metrics.terms.samples is None and list(steps.steps) == ["dense"]
+    assert new_state.cells is cells_state.cells
+    assert steps.compile_seconds is not None and steps.compile_seconds > 0
+    counts = steps._probe()
+    rays = jax.tree_util.tree_map(lambda x: x[: steps.PROBE_RAYS], batch.rays)
+    model = eqx.tree_at(lambda m: m.field, state.model, state.model.field.at_step(state.step + 1))
+    budget = SampleBudget(occupancy=cells_state.cells, stop_transmittance=occupancy.train_stop_transmittance)
+    _, report = model.render_within(rays, budget)
+    num_rays = rays.batch_shape[0]
+    expected = [
+        int(report.coarse_live),
+        int(report.fine_live),
+        0,
+        num_rays * model.coarse_sampler.num_samples,
+        num_rays * model.fine_sampler.num_samples,
+    ]
+    assert counts.tolist() == expected
+    assert 0 < counts[0] < counts[3]  # some coarse samples lie in the empty cells

@@ -12,7 +12,10 @@ the field only where it can matter:
 
 The samples that remain are gathered into a buffer whose size is their count rounded up to a
 quarter of its power of two (at most 25% padding, and a few sizes, each compiled once),
-evaluated, and scattered back. Because the samplers, the field and the renderer are the
+evaluated, and scattered back. With `chunk` set, each level is instead one compiled program:
+the buffer holds every sample of a segment and is evaluated in chunks of `chunk` points, the
+chunks past the last live sample skipped on the device (`mixnerf_eqx._nn.budget`), so a
+render compiles once and never waits for the host between segments. Because the samplers, the field and the renderer are the
 model's own, replacing any of them (`eqx.tree_at`) changes both renders alike: with no grid
 and `stop_transmittance = 0` the result equals the dense render.
 """
@@ -23,8 +26,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
+from .._nn.budget import evaluate_live
 from .._nn.field import FieldOutputs
 from .._nn.model import MixNeRF
 from .._nn.rays import RayBundle, RaySamples
@@ -42,18 +46,23 @@ class Skipping(eqx.Module):
       (0: never).
     - `segments` (static): pieces of each level between which finished rays are dropped.
     - `min_bucket` (static): the smallest buffer of gathered samples.
+    - `chunk` (static): `None`, buffers sized on the host (a few compilations); a number of
+      points, every level one compiled program evaluating chunks of that many points.
     """
 
     grid: OccupancyGrid | None = None
     stop_transmittance: float = eqx.field(static=True, default=1e-4)
     segments: int = eqx.field(static=True, default=4)
     min_bucket: int = eqx.field(static=True, default=1024)
+    chunk: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not 0 <= self.stop_transmittance < 1:
             raise ValueError(f"stop_transmittance must lie in [0, 1), got {self.stop_transmittance}")
         if self.segments < 1 or self.min_bucket < 1:
             raise ValueError("segments and min_bucket must be positive")
+        if self.chunk is not None and self.chunk < 1:
+            raise ValueError(f"chunk must be a positive number of points, got {self.chunk}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,6 +202,39 @@ def _render_level(
     return _composite(model, outputs, samples, rays), counts
 
 
+@eqx.filter_jit
+def _render_level_chunked(
+    model: MixNeRF, rays: RayBundle, samples: RaySamples, valid: Bool[Array, " batch"], skipping: Skipping
+) -> tuple[LevelOutputs, Int[Array, ""], Int[Array, ""]]:
+    """`_render_level` as one program (`Skipping.chunk`): the fine level, the samples needed
+    and the field evaluations made."""
+    assert skipping.chunk is not None
+    num_rays, num_samples = samples.means.shape[:2]
+    occupied = _occupied(skipping.grid, samples.means, valid)
+    outputs = _unevaluated(model, samples, rays)
+    alive = jnp.ones((num_rays,), bool)
+    needed = made = jnp.zeros((), jnp.int32)
+    bounds = np.linspace(0, num_samples, min(skipping.segments, num_samples) + 1).round().astype(int)
+    for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
+        if lo > 0 and skipping.stop_transmittance > 0:
+            alive = 1.0 - model.composite(outputs, samples, rays).acc >= skipping.stop_transmittance
+        live = occupied[:, lo:hi] & alive[:, None]
+        part, _, part_made = evaluate_live(
+            model.query_points,
+            samples.means[:, lo:hi],
+            samples.covs[:, lo:hi],
+            rays.viewdirs,
+            None,
+            live,
+            num_rays * (hi - lo),
+            with_mixture_heads=model.field.has_mixture_heads,
+            chunk=skipping.chunk,
+        )
+        outputs = jax.tree_util.tree_map(lambda full, values: full.at[:, lo:hi].set(values), outputs, part)
+        needed, made = needed + jnp.sum(live), made + part_made
+    return model.composite(outputs, samples, rays), needed, made
+
+
 def render_skipping(
     model: MixNeRF, rays: RayBundle, valid: Bool[Array, " batch"], skipping: Skipping
 ) -> tuple[LevelOutputs, RenderCounts]:
@@ -209,10 +251,28 @@ def render_skipping(
 
     `(fine level, counts)`.
     """
+    real = int(jnp.sum(valid))
+    if skipping.chunk is not None:
+        fine, needed, made = _render_chunked(model, rays, valid, skipping)
+        counts = RenderCounts(
+            rays=real, dense_evaluations=real * model.samples_per_ray, field_evaluations=int(needed), padded_evaluations=int(made)
+        )
+        return fine, counts
     coarse_samples = _sample_coarse(model, rays)
     coarse, coarse_counts = _render_level(model, rays, coarse_samples, valid, skipping)
     fine_samples = _sample_fine(model, rays, coarse)
     fine, fine_counts = _render_level(model, rays, fine_samples, valid, skipping)
-    real = int(jnp.sum(valid))
     totals = RenderCounts(rays=real, dense_evaluations=real * model.samples_per_ray)
     return fine, totals + coarse_counts + fine_counts
+
+
+@eqx.filter_jit
+def _render_chunked(
+    model: MixNeRF, rays: RayBundle, valid: Bool[Array, " batch"], skipping: Skipping
+) -> tuple[LevelOutputs, Int[Array, ""], Int[Array, ""]]:
+    """Both levels of `render_skipping` in one program (`Skipping.chunk`)."""
+    coarse_samples = model.sample_coarse(rays)
+    coarse, coarse_needed, coarse_made = _render_level_chunked(model, rays, coarse_samples, valid, skipping)
+    fine_samples = model.sample_fine(rays, coarse)
+    fine, fine_needed, fine_made = _render_level_chunked(model, rays, fine_samples, valid, skipping)
+    return fine, coarse_needed + fine_needed, coarse_made + fine_made

@@ -17,6 +17,12 @@ returned (`dropped`). Unevaluated samples get zero density, so their blending we
 mixing coefficients are zero: the colour and depth mixtures are MixNeRF's, over the samples a
 ray keeps, with the same NLLs. With every sample live and a buffer of every sample, the
 render equals the dense one.
+
+`evaluate_live` can instead hold every sample and evaluate the buffer in chunks (`chunk`
+points each, `jax.lax.scan`), a chunk past the last live sample skipped (`jax.lax.cond`): the
+work follows the live count and one program serves every count. The skipping render uses it
+(forward only). Training does not: on a CPU the chunked backward pass cost more than the
+evaluations it saved (benchmarks/LOG.md, "Chunked buffers in training").
 """
 
 import abc
@@ -102,17 +108,21 @@ def evaluate_live(
     capacity: int,
     *,
     with_mixture_heads: bool,
-) -> tuple[FieldOutputs, Int[Array, ""]]:
+    chunk: int | None = None,
+) -> tuple[FieldOutputs, Int[Array, ""], Int[Array, ""]]:
     """The field at (at most `capacity` of) the live samples, the others unevaluated.
 
     `query_points(means, covs, viewdirs, keys)` evaluates a flat list of points; `point_keys`
-    holds one key per sample in ray-major order (as the dense render's), or is `None`.
+    holds one key per sample in ray-major order (as the dense render's), or is `None`. With
+    `chunk`, the buffer is evaluated in chunks of that many points and the chunks past the
+    last live sample are skipped (module docstring).
+
     Returns the outputs at every sample (unevaluated: density, colour and ray depth 0, scales
-    1) and how many live samples did not fit.
+    1), how many live samples did not fit, and how many points the field was evaluated at.
     """
     num_rays, num_samples = live.shape
     total = num_rays * num_samples
-    if capacity >= total:
+    if capacity >= total and chunk is None:
         # A buffer of every sample: the dense evaluation, in the dense order, masked.
         dense = query_points(
             means.reshape(total, 3),
@@ -132,15 +142,25 @@ def evaluate_live(
             beta=masked(dense.beta, 1.0) if with_mixture_heads else None,
             ray_depth=masked(dense.ray_depth, 0.0) if with_mixture_heads else None,
         )
-        return outputs, jnp.zeros((), jnp.int32)
+        return outputs, jnp.zeros((), jnp.int32), jnp.asarray(total, jnp.int32)
+    if chunk is not None:
+        chunk = min(chunk, total)
+    size = capacity if chunk is None else chunk * math.ceil(min(capacity, total) / chunk)
     # Sample-major positions: position p is sample p // num_rays of ray p % num_rays.
     order = live.T.reshape(-1)
-    (position,) = jnp.nonzero(order, size=capacity, fill_value=total)
+    (position,) = jnp.nonzero(order, size=size, fill_value=total)
     safe = jnp.minimum(position, total - 1)
     ray_index, sample_index = safe % num_rays, safe // num_rays
     flat_index = jnp.where(position < total, ray_index * num_samples + sample_index, total)
     keys = None if point_keys is None else point_keys[ray_index * num_samples + sample_index]
-    evaluated = query_points(means[ray_index, sample_index], covs[ray_index, sample_index], viewdirs[ray_index], keys)
+    points = (means[ray_index, sample_index], covs[ray_index, sample_index], viewdirs[ray_index], keys)
+    kept = jnp.minimum(jnp.sum(live), capacity).astype(jnp.int32)
+    if chunk is None:
+        evaluated = query_points(*points)
+        made = jnp.asarray(size, jnp.int32)
+    else:
+        evaluated = _chunked(query_points, points, kept, chunk)
+        made = (chunk * ((kept + chunk - 1) // chunk)).astype(jnp.int32)
 
     def scatter(values: Array, fill: float) -> Array:
         full = jnp.full((total, *values.shape[1:]), fill, values.dtype)
@@ -153,4 +173,23 @@ def evaluate_live(
         ray_depth=scatter(evaluated.ray_depth, 0.0) if with_mixture_heads else None,
     )
     dropped = jnp.maximum(jnp.sum(live) - capacity, 0)
-    return outputs, dropped
+    return outputs, dropped, made
+
+
+def _chunked(query_points, points: tuple, kept: Int[Array, ""], chunk: int) -> FieldOutputs:
+    """`query_points(*points)` over the first `kept` of the points, in chunks of `chunk`: a
+    chunk wholly past `kept` is not evaluated (zeros, which the caller's scatter drops)."""
+    size = points[0].shape[0]
+    num_chunks = size // chunk
+    split = jax.tree_util.tree_map(lambda x: x.reshape(num_chunks, chunk, *x.shape[1:]), points)
+    shapes = jax.eval_shape(query_points, *jax.tree_util.tree_map(lambda x: x[0], split))
+
+    def skipped(*_):
+        return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+    def body(carry, inputs):
+        index, piece = inputs
+        return carry, jax.lax.cond(index * chunk < kept, lambda p: query_points(*p), skipped, piece)
+
+    _, outputs = jax.lax.scan(body, None, (jnp.arange(num_chunks), split))
+    return jax.tree_util.tree_map(lambda x: x.reshape(size, *x.shape[2:]), outputs)

@@ -164,7 +164,7 @@ class MixNeRF(eqx.Module):
             point_keys = jax.vmap(lambda k: jax.random.split(k, num_samples))(keys)
             point_keys = point_keys.reshape(num_rays * num_samples, *point_keys.shape[2:])
         capacity = budget_capacity(fraction, num_rays, num_samples)
-        outputs, dropped = evaluate_live(
+        outputs, dropped, _ = evaluate_live(
             self.query_points,
             samples.means,
             samples.covs,

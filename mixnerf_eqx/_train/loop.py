@@ -18,10 +18,13 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._config import Config, ConfigError, SettingWarning, config_to_dict, setting_warnings
 from .._inference.evaluation import Evaluation, Rendered, evaluate
+from .._nn.budget import SampleBudget
 from .._nn.model import MixNeRF
 from .._predictive.uncertainty import predict_views
 from .._util import json_io as strict_json
@@ -100,44 +103,109 @@ def _scalars(metrics: StepMetrics) -> dict[str, float]:
 
 
 class _Steps:
-    """The jitted training step for each sample-budget bucket, each compiled once (one bucket,
-    the dense step, without `occupancy.train_skipping`). Every `occupancy.train_budget_every`
-    steps the buckets follow the live shares the last step measured (`budget_bucket`)."""
+    """The jitted training steps: the dense step, and one skipping step per pair of buffer
+    sizes (`budget_bucket`), each compiled once. Every `occupancy.train_budget_every` steps
+    the buffers follow the live shares the last step measured; a smaller buffer is taken only
+    when it pays for itself: when the seconds it saves over the steps left (the step's measured
+    seconds, scaled by the field's share of the buffer) exceed the seconds a compilation took
+    in this run (the first compilation measures it). A larger buffer (live samples beyond the
+    current one) is taken at once. Full buffers run the dense step."""
 
     # Below this share of live coarse samples the grid is taken to be wrong (it would starve
     # the field of gradient): training falls back to dense steps for the rest of the run.
     MIN_LIVE_SHARE = 0.01
+    # The share of a dense step's seconds that follows the field evaluations
+    # (benchmarks/skipping_step.py: 0.8 to 0.95 on the CPU; the lower figure, so that a
+    # switch is never predicted to save more than it does).
+    FIELD_SHARE = 0.8
+    # Rays of the batch whose live samples a dense step's measurement counts.
+    PROBE_RAYS = 128
 
     def __init__(self, config: Config, wrap: Callable[[Any], Any]):
         self.config, self.wrap = config, wrap
-        self.steps: dict[tuple[Any, Any], Any] = {}
+        self.steps: dict[Any, Any] = {}
         self.budget: tuple[float, float] | None = (1.0, 1.0)
         self.fallback: str | None = None
+        self.compile_seconds: float | None = None
+        self.step_seconds: float | None = None
+        self._window: tuple[float, int] | None = None  # (clock, step) where the window began
+        self._compiled_in_window = False
+        self._last: tuple[TrainState, Any] | None = None
+
+    def _program(self, key: Any) -> Any:
+        if key == "dense":
+            dense = dataclasses.replace(
+                self.config, occupancy=dataclasses.replace(self.config.occupancy, train_skipping=False)
+            )
+            return self.wrap(make_train_step(dense, max_traces=1))
+        return self.wrap(make_train_step(self.config, max_traces=1, budget=key))
 
     def __call__(self, state: TrainState, batch: Any) -> tuple[TrainState, StepMetrics]:
-        # Dense steps until the grid has looked at every cell (`state.cells` set), and after a fallback.
-        # (The dense step compiles once with `cells` unset and, after a fallback, once with it set.)
-        bucket = self.budget if state.cells is not None else None
-        key = bucket if bucket is not None else ("dense", state.cells is None)
+        # Dense steps until the grid has looked at every cell (`state.cells` set), while the
+        # buffers are full, and after a fallback. The dense step always sees a state without
+        # cells, so that it compiles once.
+        skipping = state.cells is not None and self.budget is not None and self.budget != (1.0, 1.0)
+        key = self.budget if skipping else "dense"
         step = self.steps.get(key)
         if step is None:
-            if bucket is None:
-                dense = dataclasses.replace(
-                    self.config, occupancy=dataclasses.replace(self.config.occupancy, train_skipping=False)
-                )
-                step = self.wrap(make_train_step(dense, max_traces=1))
-            else:
-                step = self.wrap(make_train_step(self.config, max_traces=1, budget=self.budget))
-            self.steps[key] = step
-        return step(state, batch)
+            step = self.steps[key] = self._program(key)
+            started = time.perf_counter()
+            new_state, metrics = step(state if skipping else dataclasses.replace(state, cells=None), batch)
+            jax.block_until_ready(metrics.terms.total)
+            self.compile_seconds = max(self.compile_seconds or 0.0, time.perf_counter() - started)
+            self._compiled_in_window = True
+        else:
+            new_state, metrics = step(state if skipping else dataclasses.replace(state, cells=None), batch)
+        self._last = (state, batch)
+        return (new_state if skipping else dataclasses.replace(new_state, cells=state.cells)), metrics
+
+    def _probe(self) -> np.ndarray | None:
+        """The live samples of the last batch's first `PROBE_RAYS` rays, counted as a
+        skipping step counts them, while the steps are dense and the grid is complete."""
+        state, batch = self._last
+        if state.cells is None:
+            return None
+        rays = jax.tree_util.tree_map(lambda x: x[: self.PROBE_RAYS], batch.rays)
+        return np.asarray(
+            _live_counts(state.model, state.cells, rays, state.step, self.config.occupancy.train_stop_transmittance)
+        )
+
+    def _time_window(self, done: int) -> None:
+        """The seconds per step since the last measurement (windows holding a compilation
+        are not counted)."""
+        now = time.perf_counter()
+        if self._window is not None and not self._compiled_in_window and done > self._window[1]:
+            self.step_seconds = (now - self._window[0]) / (done - self._window[1])
+        self._window, self._compiled_in_window = (now, done), False
+
+    def _pays(self, wanted: tuple[float, float], counts: tuple[float, float], done: int) -> bool:
+        """Whether switching from the current buffers to `wanted` saves more seconds over the
+        rest of the run than compiling it costs."""
+        if wanted in self.steps or self.compile_seconds is None or self.step_seconds is None:
+            return True
+        assert self.budget is not None
+        total = counts[0] + counts[1]
+
+        def cost(budget: tuple[float, float]) -> float:
+            shared = (budget[0] * counts[0] + budget[1] * counts[1]) / total
+            return 1.0 - self.FIELD_SHARE + self.FIELD_SHARE * shared
+
+        left = self.config.train.max_steps - done
+        saved = left * self.step_seconds * (1.0 - cost(wanted) / cost(self.budget))
+        return saved > self.compile_seconds
 
     def measure(self, done: int, metrics: StepMetrics) -> str | None:
         """Follows the live shares; returns a warning when it falls back to dense steps."""
         occupancy = self.config.occupancy
         samples = metrics.terms.samples
-        if self.budget is None or samples is None or not _due(done, occupancy.train_budget_every):
+        if self.budget is None or not _due(done, occupancy.train_budget_every):
             return None
-        _, coarse, fine, _, coarse_dense, fine_dense = (float(x) for x in np.asarray(samples))
+        self._time_window(done)
+        # A skipping step counts its live samples; a dense step's are counted on a probe.
+        counts = np.asarray(samples)[1:] if samples is not None else self._probe()
+        if counts is None:
+            return None
+        coarse, fine, _, coarse_dense, fine_dense = (float(x) for x in counts)
         if coarse / coarse_dense < self.MIN_LIVE_SHARE:
             self.budget = None
             self.fallback = (
@@ -147,11 +215,33 @@ class _Steps:
             )
             return self.fallback
         current = self.budget
-        self.budget = (
+        wanted = (
             budget_bucket(coarse / coarse_dense, occupancy.train_headroom, current[0]),
             budget_bucket(fine / fine_dense, occupancy.train_headroom, current[1]),
         )
+        grows = wanted[0] > current[0] or wanted[1] > current[1]
+        if wanted != current and (grows or self._pays(wanted, (coarse_dense, fine_dense), done)):
+            self.budget = wanted
         return None
+
+
+@eqx.filter_jit
+def _live_counts(model: MixNeRF, cells: Any, rays: Any, step: Any, stop_transmittance: float) -> Any:
+    """Live coarse and fine samples of `rays` (deterministic samples), as a skipping step
+    counts them: `[coarse, fine, 0, coarse total, fine total]`."""
+    model = eqx.tree_at(lambda m: m.field, model, model.field.at_step(step + 1))
+    budget = SampleBudget(occupancy=cells, stop_transmittance=stop_transmittance)
+    _, report = model.render_within(rays, budget)
+    num_rays = rays.batch_shape[0]
+    return jnp.stack(
+        [
+            report.coarse_live.astype(float),
+            report.fine_live.astype(float),
+            jnp.zeros(()),
+            jnp.asarray(float(num_rays * model.coarse_sampler.num_samples)),
+            jnp.asarray(float(num_rays * model.fine_sampler.num_samples)),
+        ]
+    )
 
 
 class _RunLog:

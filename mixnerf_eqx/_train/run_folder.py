@@ -32,7 +32,12 @@ _refresh_occupancy = jax.jit(refresh_occupancy)
 
 def make_skipping(occupancy: OccupancyConfig, grid: OccupancyGrid | None) -> Skipping:
     """The rendering options of `occupancy` with `grid`."""
-    return Skipping(grid=grid, stop_transmittance=occupancy.stop_transmittance, segments=occupancy.segments)
+    return Skipping(
+        grid=grid,
+        stop_transmittance=occupancy.stop_transmittance,
+        segments=occupancy.segments,
+        chunk=occupancy.render_chunk_points or None,
+    )
 
 
 def grid_for_rendering(
