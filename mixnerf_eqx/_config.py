@@ -218,7 +218,8 @@ class OccupancyConfig:
     # point where the coarse transmittance falls below `train_stop_transmittance`), gathered
     # into a buffer per level whose size is the share of samples last found live, plus
     # `train_headroom`, rounded up to a rung of 1, 0.71, 0.5, 0.35, ... (a few sizes, each step
-    # compiled once).
+    # compiled once); a smaller rung only when the seconds it saves over the steps left exceed
+    # a compilation's (full buffers run the dense step).
     train_skipping: bool = False
     train_stop_transmittance: float = 1e-4  # 0: finished rays are evaluated in training
     train_headroom: float = 0.05  # share of the samples added to the live share measured

@@ -10,14 +10,16 @@ the field only where it can matter:
   once the renderer's accumulated opacity leaves a ray less than `stop_transmittance` of its
   light, its later samples are not evaluated (their blending weights could add at most that).
 
-The samples that remain are gathered into a buffer whose size is their count rounded up to a
-quarter of its power of two (at most 25% padding, and a few sizes, each compiled once),
-evaluated, and scattered back. With `chunk` set, each level is instead one compiled program:
-the buffer holds every sample of a segment and is evaluated in chunks of `chunk` points, the
-chunks past the last live sample skipped on the device (`mixnerf_eqx._nn.budget`), so a
-render compiles once and never waits for the host between segments. Because the samplers, the field and the renderer are the
-model's own, replacing any of them (`eqx.tree_at`) changes both renders alike: with no grid
-and `stop_transmittance = 0` the result equals the dense render.
+With `chunk` (the default), each level is one compiled program: the samples that remain in a
+segment are gathered into a buffer evaluated in chunks of `chunk` points, the chunks past the
+last live sample skipped on the device (`mixnerf_eqx._nn.budget`), and scattered back, so a
+render compiles once and never waits for the host between segments. With `chunk = None` the
+buffer's size is decided on the host: the count rounded up to a quarter of its power of two
+(at most 25% padding, a compilation per size).
+
+Because the samplers, the field and the renderer are the model's own, replacing any of them
+(`eqx.tree_at`) changes both renders alike: with no grid and `stop_transmittance = 0` the
+result equals the dense render.
 """
 
 import dataclasses
@@ -46,15 +48,16 @@ class Skipping(eqx.Module):
       (0: never).
     - `segments` (static): pieces of each level between which finished rays are dropped.
     - `min_bucket` (static): the smallest buffer of gathered samples.
-    - `chunk` (static): `None`, buffers sized on the host (a few compilations); a number of
-      points, every level one compiled program evaluating chunks of that many points.
+    - `chunk` (static): a number of points: every level is one compiled program evaluating
+      chunks of that many points (the default); `None`: buffers sized on the host, a
+      compilation per size and a wait for the host between segments.
     """
 
     grid: OccupancyGrid | None = None
     stop_transmittance: float = eqx.field(static=True, default=1e-4)
     segments: int = eqx.field(static=True, default=4)
     min_bucket: int = eqx.field(static=True, default=1024)
-    chunk: int | None = eqx.field(static=True, default=None)
+    chunk: int | None = eqx.field(static=True, default=4096)
 
     def __check_init__(self):
         if not 0 <= self.stop_transmittance < 1:
@@ -255,7 +258,10 @@ def render_skipping(
     if skipping.chunk is not None:
         fine, needed, made = _render_chunked(model, rays, valid, skipping)
         counts = RenderCounts(
-            rays=real, dense_evaluations=real * model.samples_per_ray, field_evaluations=int(needed), padded_evaluations=int(made)
+            rays=real,
+            dense_evaluations=real * model.samples_per_ray,
+            field_evaluations=int(needed),
+            padded_evaluations=int(made),
         )
         return fine, counts
     coarse_samples = _sample_coarse(model, rays)

@@ -21,8 +21,8 @@ render equals the dense one.
 `evaluate_live` can instead hold every sample and evaluate the buffer in chunks (`chunk`
 points each, `jax.lax.scan`), a chunk past the last live sample skipped (`jax.lax.cond`): the
 work follows the live count and one program serves every count. The skipping render uses it
-(forward only). Training does not: on a CPU the chunked backward pass cost more than the
-evaluations it saved (benchmarks/LOG.md, "Chunked buffers in training").
+(forward only); training keeps fixed buffers, whose backward pass is one gather and one
+scatter rather than a loop of branches.
 """
 
 import abc

@@ -166,9 +166,8 @@ class _Steps:
         if state.cells is None:
             return None
         rays = jax.tree_util.tree_map(lambda x: x[: self.PROBE_RAYS], batch.rays)
-        return np.asarray(
-            _live_counts(state.model, state.cells, rays, state.step, self.config.occupancy.train_stop_transmittance)
-        )
+        stop = self.config.occupancy.train_stop_transmittance
+        return np.asarray(_live_counts(state.model, state.cells, rays, state.step, stop))
 
     def _time_window(self, done: int) -> None:
         """The seconds per step since the last measurement (windows holding a compilation

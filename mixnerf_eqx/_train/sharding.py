@@ -11,7 +11,7 @@ of the floating-point sums.
 
 Several hosts: call `initialize_distributed()` (which calls `jax.distributed.initialize`) in
 every process before anything touches a device; the mesh then spans the devices of all
-processes. The README ("Several devices and hosts") shows a Slurm launch.
+processes. `docs/scaling.md` shows a Slurm launch.
 """
 
 import os

@@ -40,6 +40,7 @@ from .._train.run_folder import (
     dataset_record,
     grid_for_rendering,
     make_skipping,
+    skipping_pays,
     render_summary,
     restore_run,
     write_view_renders,
@@ -127,11 +128,12 @@ def format_table(per_view: list[dict], means: dict) -> str:
     return "\n".join(lines)
 
 
-def _skipping_for(run: Run, mode: str):
-    """The grid, skipping options and calibration choice `--skipping` asks for, and its time."""
+def _skipping_for(run: Run, mode: str, dense_evaluations: int):
+    """The grid, skipping options and calibration choice `--skipping` asks for, and its time
+    (`auto`: where skipping pays for its grid on renders of `dense_evaluations`)."""
     started = time.perf_counter()
     config = run.config
-    if not (mode == "on" or (mode == "auto" and config.occupancy.enabled)):
+    if not (mode == "on" or (mode == "auto" and skipping_pays(config.occupancy, dense_evaluations))):
         return None, None, None, 0.0
     grid, choice = grid_for_rendering(
         config.occupancy, run.dataset, run.model, key=jax.random.fold_in(run.state.key, run.step)
@@ -200,13 +202,15 @@ def run(args: argparse.Namespace) -> dict:
     config, dataset = restored.config, restored.dataset
     if args.uncertainty:  # before anything is rendered: what the intervals can be fitted on
         args.calibration = _calibration_method(restored, args.calibration, args.split)
-    grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
-    chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
     views = dataset.split(args.split)  # a split the scene lacks: one line, status 2
     view_ids = None
     if args.max_views > 0:
         view_ids = evenly_spaced(views.num_views, min(args.max_views, views.num_views))
     num_views = views.num_views if view_ids is None else len(view_ids)
+    pixels = int(np.prod(views.images.shape[1:3]))
+    dense = num_views * pixels * restored.model.samples_per_ray
+    grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping, dense)
+    chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
     final = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
     out = _staging_folder(final)
     try:
