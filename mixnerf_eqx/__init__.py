@@ -7,13 +7,18 @@ annotated function and Module checks the shapes and dtypes of its arguments whil
 """
 
 from ._util.allocator import preload_for_commands as _preload_for_commands
+from ._util.allocator import started_as_command as _started_as_command
+from ._util.interrupt import quiet_interrupts_while_starting as _quiet_interrupts_while_starting
 from ._util.interrupt import redeliver_dropped_interrupts as _redeliver_dropped_interrupts
 
 # Before anything heavy is imported: `python -m mixnerf_eqx.<command>` starts itself again
 # with mimalloc preloaded where it is installed (a faster CPU step; `mixnerf_eqx._util.allocator`).
 _preload_for_commands()
-# Before JAX is imported: a Ctrl-C that lands in its garbage-collection callback is not lost.
+# Before JAX is imported: a Ctrl-C that lands in its garbage-collection callback is not lost,
+# and one while a command is still importing ends it with one line, not a traceback.
 _redeliver_dropped_interrupts()
+if _started_as_command():
+    _quiet_interrupts_while_starting()
 
 import jaxtyping as _jaxtyping  # noqa: E402
 

@@ -334,3 +334,23 @@ def test_eval_of_a_run_folder_it_cannot_write_to_asks_for_out(trained, monkeypat
     assert code == 2
     assert "is not writable: give --out a folder you can write to" in error and "\n" not in error
     assert sorted(p.name for p in trained.run_dir.iterdir()) == before
+
+
+def test_a_second_evaluation_into_the_same_folder_is_refused_before_it_touches_it(trained, tmp_path, capsys):
+    from mixnerf_eqx._util.lock import hold_folder
+
+    out = tmp_path / "shared"
+    arguments = [str(trained.run_dir), "--no-lpips", "--no-progress", "--out", str(out)]
+    assert eval_main(arguments) == 0
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    capsys.readouterr()
+    # Another evaluation into `shared` holds its lock (as a running `eval --out shared` does).
+    with hold_folder(tmp_path, "evaluation", "--out", name=".shared.eval.lock", label=out):
+        assert eval_main(arguments) == 2
+    message = capsys.readouterr().err
+    assert f"{out} is in use by another evaluation" in message and "--out" in message
+    # Neither the results nor a staging folder were touched.
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+    assert not (tmp_path / "shared.partial").exists()
+    # Once the other evaluation has ended, the same command runs.
+    assert eval_main(arguments) == 0

@@ -589,3 +589,23 @@ def test_a_ctrl_c_while_a_command_loads_its_modules_is_status_130_without_a_trac
     monkeypatch.delitem(sys.modules, f"mixnerf_eqx.{command}", raising=False)
     with pytest.raises(KeyboardInterrupt):
         runpy.run_module(f"mixnerf_eqx.{command}", run_name="not_main")
+
+
+@pytest.mark.parametrize("delay", [0.2, 0.5])
+def test_a_ctrl_c_while_a_command_is_still_importing_is_one_line(tmp_path, delay):
+    import time
+
+    run_dir = tmp_path / "run"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "mixnerf_eqx.train", "--no-progress", f'train.run_dir="{run_dir}"'],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    time.sleep(delay)  # inside the imports of JAX and the package (over a second here)
+    process.send_signal(signal.SIGINT)
+    _, error = process.communicate(timeout=120)
+    assert process.returncode == 130, error
+    assert "Traceback" not in error and error.strip() == "interrupted while starting: nothing was written"
+    assert not run_dir.exists()

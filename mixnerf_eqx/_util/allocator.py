@@ -201,6 +201,11 @@ def preload_allocator() -> None:
         )
 
 
+def started_as_command() -> bool:
+    """Whether this process was started as `python -m mixnerf_eqx.<command>`."""
+    return _started_as_command(sys.orig_argv)
+
+
 def preload_for_commands() -> None:
     """`preload_allocator()` for a process started as `python -m mixnerf_eqx.<command>`;
     anything else goes on unchanged."""

@@ -18,6 +18,7 @@ recorded, inside `deferred_interrupts()`) as soon as Python can.
 
 import _thread
 import contextlib
+import os
 import signal
 import sys
 import threading
@@ -100,3 +101,19 @@ def redeliver_dropped_interrupts() -> None:
 
     sys.unraisablehook = hook
     _redelivering = True
+
+
+def quiet_interrupts_while_starting() -> None:
+    """A Ctrl-C while a command is still importing (before its own handling is in place) ends
+    it with one line instead of a traceback through the imports: nothing has been written yet.
+    Other uncaught exceptions go to the hook that was there."""
+    previous = sys.excepthook
+
+    def hook(kind: type[BaseException], value: BaseException, traceback: Any) -> None:
+        if issubclass(kind, KeyboardInterrupt):
+            print("\ninterrupted while starting: nothing was written", file=sys.stderr)
+            sys.stderr.flush()
+            os._exit(130)  # the commands' status for a Ctrl-C
+        previous(kind, value, traceback)
+
+    sys.excepthook = hook

@@ -40,7 +40,13 @@ def _holder(handle) -> str:
 
 
 @contextlib.contextmanager
-def hold_folder(folder: str | Path, what: str = "run", option: str = "train.run_dir") -> Iterator[Path]:
+def hold_folder(
+    folder: str | Path,
+    what: str = "run",
+    option: str = "train.run_dir",
+    name: str = LOCK_NAME,
+    label: str | Path | None = None,
+) -> Iterator[Path]:
     """Holds the exclusive lock of `folder` (created if missing) for the block.
 
     **Arguments:**
@@ -48,13 +54,16 @@ def hold_folder(folder: str | Path, what: str = "run", option: str = "train.run_
     - `folder`: the folder one process writes to.
     - `what`, `option`: named in the error (`"run"`, `"train.run_dir"`; a sweep: `"sweep"`,
       `"--out"`).
+    - `name`: the lock file's name in `folder` (an evaluation locks its output's name in the
+      folder that holds it, beside a training run's own lock).
+    - `label`: what the error says is in use (default: `folder`).
 
     **Raises:**
 
     `FolderBusyError` when another process holds it.
     """
     folder = Path(folder)
-    path = folder / LOCK_NAME
+    path = folder / name
     if fcntl is None:  # pragma: no cover
         warnings.warn(
             f"no file locks on this system: nothing stops a second writer in {folder}", stacklevel=3
@@ -62,7 +71,7 @@ def hold_folder(folder: str | Path, what: str = "run", option: str = "train.run_
         yield path
         return
     created = not path.exists()
-    handle = _locked(path, folder, what, option)
+    handle = _locked(path, folder if label is None else Path(label), what, option)
     try:
         started = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
         handle.seek(0)

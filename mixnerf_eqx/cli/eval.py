@@ -13,6 +13,7 @@ draws the run's training curves from its log into `RUN_DIR/curves.png` (with mat
 """
 
 import argparse
+import contextlib
 import json
 import math
 import shutil
@@ -49,6 +50,7 @@ from .._util import json_io as strict_json
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.curves import plot_curves
 from .._util.interrupt import raise_if_interrupted
+from .._util.lock import hold_folder
 from .._util.progress import Progress
 from .._util.typecheck import add_typecheck_argument
 from ..data import evenly_spaced
@@ -212,78 +214,89 @@ def run(args: argparse.Namespace) -> dict:
     grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping, dense)
     chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
     final = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
-    out = _staging_folder(final)
+    # One evaluation at a time into a folder: a second one is refused before it touches the
+    # first one's staging folder or results.
+    lock = contextlib.ExitStack()
     try:
-        bar = Progress(num_views, unit="view", enabled=not args.no_progress)
-        chosen = views if view_ids is None else views.select(view_ids)
-
-        def after_view(index: int, entry: dict, rendered: Rendered) -> None:
-            if not args.no_renders:
-                truth = chosen.images[index]
-                write_view_renders(out, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
-            bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
-
+        final.parent.mkdir(parents=True, exist_ok=True)
+        lock.enter_context(
+            hold_folder(final.parent, "evaluation", "--out", name=f".{final.name}.eval.lock", label=final)
+        )
+    except PermissionError:
+        raise ConfigError(f"{final.parent} is not writable: give --out a folder you can write to") from None
+    with lock:
+        out = _staging_folder(final)
         try:
-            evaluation = evaluate(
-                restored.model,
-                dataset,
-                chunk=chunk,
-                view_ids=view_ids,
-                with_lpips=not args.no_lpips,
-                on_view=after_view,
-                skipping=skipping,
-                split=args.split,
-            )
-        finally:
-            bar.close()
-        render = render_summary(evaluation.counts, evaluation.seconds, num_views, grid, choice)
-        render["grid_seconds"] = grid_seconds
-        lpips_note = "computed"
-        if args.no_lpips:
-            lpips_note = "skipped (--no-lpips)"
-        elif not lpips_available():
-            lpips_note = "unavailable: install the lpips extra (pip install -e '.[lpips]')"
-        result = {
-            "run_dir": str(run_dir),
-            "checkpoint": str(restored.checkpoint),
-            "step": restored.step,
-            "scene": dataset.name,
-            "dataset": dataset_record(config, dataset),
-            "split": args.split,
-            "num_views": num_views,
-            "lpips": lpips_note,
-            "seconds": evaluation.seconds + grid_seconds,
-            "render": render,
-            "mean": evaluation.means,
-            "per_view": evaluation.per_view,
-        }
-        if args.uncertainty:
-            result["uncertainty"] = _uncertainty(
-                restored,
-                chosen,
-                chunk,
-                out,
-                temperature=args.temperature,
-                renders=not args.no_renders,
-                method=args.calibration,
-            )
-        (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
-        raise_if_interrupted()  # a Ctrl-C during the evaluation stops it before the replacement
-        _put_in_place(out, final)
-    except BaseException:
-        shutil.rmtree(out, ignore_errors=True)  # the results there were stay whole
-        raise
-    args.results_in_place = final  # what a Ctrl-C from here on says
-    _print_summary(result, grid, choice, final, not args.no_renders)
-    # After the results are in place: the run's training curves, beside its log.
-    curves = plot_curves(run_dir)
-    if curves is not None:
-        result["curves"] = str(curves)
-        staged = final / "metrics.json.partial"
-        staged.write_text(strict_json.dumps(result, indent=2))
-        staged.replace(final / "metrics.json")
-        print(f"training curves: {curves}")
-    return result
+            bar = Progress(num_views, unit="view", enabled=not args.no_progress)
+            chosen = views if view_ids is None else views.select(view_ids)
+
+            def after_view(index: int, entry: dict, rendered: Rendered) -> None:
+                if not args.no_renders:
+                    truth = chosen.images[index]
+                    write_view_renders(out, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
+                bar.update(index + 1, psnr=f"{entry['psnr']:.2f}")
+
+            try:
+                evaluation = evaluate(
+                    restored.model,
+                    dataset,
+                    chunk=chunk,
+                    view_ids=view_ids,
+                    with_lpips=not args.no_lpips,
+                    on_view=after_view,
+                    skipping=skipping,
+                    split=args.split,
+                )
+            finally:
+                bar.close()
+            render = render_summary(evaluation.counts, evaluation.seconds, num_views, grid, choice)
+            render["grid_seconds"] = grid_seconds
+            lpips_note = "computed"
+            if args.no_lpips:
+                lpips_note = "skipped (--no-lpips)"
+            elif not lpips_available():
+                lpips_note = "unavailable: install the lpips extra (pip install -e '.[lpips]')"
+            result = {
+                "run_dir": str(run_dir),
+                "checkpoint": str(restored.checkpoint),
+                "step": restored.step,
+                "scene": dataset.name,
+                "dataset": dataset_record(config, dataset),
+                "split": args.split,
+                "num_views": num_views,
+                "lpips": lpips_note,
+                "seconds": evaluation.seconds + grid_seconds,
+                "render": render,
+                "mean": evaluation.means,
+                "per_view": evaluation.per_view,
+            }
+            if args.uncertainty:
+                result["uncertainty"] = _uncertainty(
+                    restored,
+                    chosen,
+                    chunk,
+                    out,
+                    temperature=args.temperature,
+                    renders=not args.no_renders,
+                    method=args.calibration,
+                )
+            (out / "metrics.json").write_text(strict_json.dumps(result, indent=2))
+            raise_if_interrupted()  # a Ctrl-C during the evaluation stops it before the replacement
+            _put_in_place(out, final)
+        except BaseException:
+            shutil.rmtree(out, ignore_errors=True)  # the results there were stay whole
+            raise
+        args.results_in_place = final  # what a Ctrl-C from here on says
+        _print_summary(result, grid, choice, final, not args.no_renders)
+        # After the results are in place: the run's training curves, beside its log.
+        curves = plot_curves(run_dir)
+        if curves is not None:
+            result["curves"] = str(curves)
+            staged = final / "metrics.json.partial"
+            staged.write_text(strict_json.dumps(result, indent=2))
+            staged.replace(final / "metrics.json")
+            print(f"training curves: {curves}")
+        return result
 
 
 # What eval writes: a folder holding anything else is not replaced (`--out` may name a folder
