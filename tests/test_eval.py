@@ -150,24 +150,6 @@ def test_eval_with_skipping_reports_its_cost_and_stays_within_a_tenth_of_a_db(tr
     assert written["mean"]["psnr"] == pytest.approx(trained.metrics["test"]["psnr"], abs=0.1)
 
 
-def test_auto_skipping_skips_only_where_the_renders_pay_for_the_grid(trained, tmp_path):
-    from mixnerf_eqx._config import OccupancyConfig
-    from mixnerf_eqx._train.run_folder import AUTO_SKIPPING_FACTOR, skipping_pays
-
-    occupancy = OccupancyConfig(resolution=64)
-    threshold = AUTO_SKIPPING_FACTOR * 64**3
-    assert not skipping_pays(occupancy, threshold - 1) and skipping_pays(occupancy, threshold)
-    assert skipping_pays(dataclasses.replace(occupancy, enabled=True), 0)  # a run that kept a grid
-    # The tiny run's few small test views ask for far fewer evaluations than its grid's cells.
-    out = tmp_path / "auto"
-    code = eval_main([str(trained.run_dir), "--no-lpips", "--no-renders", "--no-progress", "--out", str(out)])
-    assert code == 0
-    written = json.loads((out / "metrics.json").read_text())
-    resolution = json.loads((trained.run_dir / "config.json").read_text())["occupancy"]["resolution"]
-    dense = written["render"]["dense_evaluations_per_frame"] * written["num_views"]
-    assert dense < AUTO_SKIPPING_FACTOR * resolution**3 and not written["render"]["skipping"]
-
-
 def test_evaluate_means_are_means_of_the_views(trained, tiny_scene):
     result = evaluate(trained.model, tiny_scene, chunk=512, with_lpips=False)
     assert result.means["psnr"] == pytest.approx(np.mean([v["psnr"] for v in result.per_view]))

@@ -40,20 +40,6 @@ def make_skipping(occupancy: OccupancyConfig, grid: OccupancyGrid | None) -> Ski
     )
 
 
-# `--skipping auto` skips where the renders' dense field evaluations are at least this many
-# times the grid's cells: building the grid (a density per cell) and choosing its threshold
-# then cost a small share of what skipping saves. Below it (a few small views) the dense
-# render is cheaper than the grid.
-AUTO_SKIPPING_FACTOR = 16
-
-
-def skipping_pays(occupancy: OccupancyConfig, dense_evaluations: int) -> bool:
-    """Whether `--skipping auto` skips: the run keeps a grid (`occupancy.enabled`), or the
-    renders ask for at least `AUTO_SKIPPING_FACTOR` times the grid's cells in field
-    evaluations."""
-    return occupancy.enabled or dense_evaluations >= AUTO_SKIPPING_FACTOR * occupancy.resolution**3
-
-
 def grid_for_rendering(
     occupancy: OccupancyConfig,
     dataset: Dataset,

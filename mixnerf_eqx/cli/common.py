@@ -65,6 +65,5 @@ def add_skipping_argument(parser: argparse.ArgumentParser) -> None:
         choices=("auto", "on", "off"),
         default="auto",
         help="skip empty space and finished rays with an occupancy grid built from the checkpoint "
-        "(auto: if the run kept a grid, or if the renders ask for at least 16 times the grid's cells "
-        "in field evaluations, where building the grid costs little of what skipping saves)",
+        "(auto: if the run's occupancy.enabled)",
     )

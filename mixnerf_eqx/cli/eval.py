@@ -41,7 +41,6 @@ from .._train.run_folder import (
     dataset_record,
     grid_for_rendering,
     make_skipping,
-    skipping_pays,
     render_summary,
     restore_run,
     write_view_renders,
@@ -130,12 +129,11 @@ def format_table(per_view: list[dict], means: dict) -> str:
     return "\n".join(lines)
 
 
-def _skipping_for(run: Run, mode: str, dense_evaluations: int):
-    """The grid, skipping options and calibration choice `--skipping` asks for, and its time
-    (`auto`: where skipping pays for its grid on renders of `dense_evaluations`)."""
+def _skipping_for(run: Run, mode: str):
+    """The grid, skipping options and calibration choice `--skipping` asks for, and its time."""
     started = time.perf_counter()
     config = run.config
-    if not (mode == "on" or (mode == "auto" and skipping_pays(config.occupancy, dense_evaluations))):
+    if not (mode == "on" or (mode == "auto" and config.occupancy.enabled)):
         return None, None, None, 0.0
     grid, choice = grid_for_rendering(
         config.occupancy, run.dataset, run.model, key=jax.random.fold_in(run.state.key, run.step)
@@ -209,9 +207,7 @@ def run(args: argparse.Namespace) -> dict:
     if args.max_views > 0:
         view_ids = evenly_spaced(views.num_views, min(args.max_views, views.num_views))
     num_views = views.num_views if view_ids is None else len(view_ids)
-    pixels = int(np.prod(views.images.shape[1:3]))
-    dense = num_views * pixels * restored.model.samples_per_ray
-    grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping, dense)
+    grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
     chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
     final = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
     # One evaluation at a time into a folder: a second one is refused before it touches the

@@ -20,7 +20,7 @@ import numpy as np
 from .._config import ConfigError
 from .._inference.video import check_destination, render_video
 from .._nn.rays import RayBundle
-from .._train.run_folder import Run, grid_for_rendering, make_skipping, restore_run, skipping_pays
+from .._train.run_folder import Run, grid_for_rendering, make_skipping, restore_run
 from .._util import json_io as strict_json
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.progress import Progress
@@ -94,10 +94,7 @@ def run(args: argparse.Namespace) -> dict:
     restored = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
     config = restored.config
     skipping = None
-    frames = restored.dataset.test.num_views if args.path == "test" else args.frames
-    # The frames have the test views' size (`render_video`).
-    dense = frames * int(np.prod(restored.dataset.test.images.shape[1:3])) * restored.model.samples_per_ray
-    if args.skipping == "on" or (args.skipping == "auto" and skipping_pays(config.occupancy, dense)):
+    if args.skipping == "on" or (args.skipping == "auto" and config.occupancy.enabled):
         grid, _ = grid_for_rendering(
             config.occupancy, restored.dataset, restored.model, key=jax.random.fold_in(restored.state.key, 0)
         )
