@@ -8,7 +8,7 @@ For each run: the wall time of each command (no compilation cache: what a first 
 costs), the grid's seconds (its refresh and the threshold choice on training pixels, which
 never sees a test view), the chosen threshold, field evaluations per frame made and needed
 against dense, seconds per frame, and the test PSNR, SSIM and LPIPS of both, with the largest
-per-view PSNR change. `--skipping auto`'s decision for the run is printed beside it.
+per-view PSNR change.
 
 Output: `--out` (default `benchmarks/results/render_skipping_<backend>`) `.json` and `.md`.
 """

@@ -279,7 +279,7 @@ def test_a_smaller_buffer_is_compiled_only_when_the_seconds_it_saves_exceed_a_co
     config, _, _, _ = grid_setup
     steps = _steps_for(config, max_steps=1000)
     counts = (100.0, 100.0)  # coarse and fine samples per batch
-    steps.compile_seconds, steps.step_seconds = 5.0, 0.04
+    steps.compile_seconds, steps.windows = 5.0, [0.04, 0.04, 9.0]  # a window with an evaluation
     # Dense (cost 1) to half buffers (cost 0.2 + 0.8 * 0.5 = 0.6) saves 0.4 of 0.04 s a step:
     # with 900 steps left 14.4 s > 5 s; with 200 left 3.2 s < 5 s.
     assert steps._pays((0.5, 0.5), counts, done=100)
@@ -290,15 +290,16 @@ def test_a_smaller_buffer_is_compiled_only_when_the_seconds_it_saves_exceed_a_co
     # The levels weigh by their sample counts.
     saved = 200 * 0.04 * (1 - (0.2 + 0.8 * (0.25 * 300 + 100) / 400))
     assert steps._pays((0.25, 1.0), (300.0, 100.0), done=800) is (saved > 5.0)
-    # A program already compiled always pays; so does any before a compilation and a step
-    # have been timed (the buffers then follow the shares).
+    # A program already compiled always pays; none is compiled before a compilation and a
+    # step have been timed (a resumed run's first windows).
     steps.steps[(0.5, 0.5)] = object()
     assert steps._pays((0.5, 0.5), counts, done=999)
-    assert _steps_for(config)._pays((0.5, 0.5), counts, done=999)
+    assert not _steps_for(config)._pays((0.5, 0.5), counts, done=0)
 
 
-def test_full_buffers_run_the_dense_step_and_the_probe_counts_as_a_skipping_step_would(grid_setup):
+def test_full_buffers_run_the_dense_step_and_the_count_is_the_skipping_steps_own(grid_setup):
     config, _, state, batch = grid_setup
+    assert batch.patches is None  # the step renders exactly the batch's rays
     grid = eqx.tree_at(lambda g: g.density, state.grid, jnp.zeros_like(state.grid.density).at[:8].set(1e3))
     occupancy = dataclasses.replace(config.occupancy, train_skipping=True)
     cells_state = training_cells(dataclasses.replace(state, grid=grid), occupancy)
@@ -309,18 +310,11 @@ def test_full_buffers_run_the_dense_step_and_the_probe_counts_as_a_skipping_step
     assert metrics.terms.samples is None and list(steps.steps) == ["dense"]
     assert new_state.cells is cells_state.cells
     assert steps.compile_seconds is not None and steps.compile_seconds > 0
-    counts = steps._probe()
-    rays = jax.tree_util.tree_map(lambda x: x[: steps.PROBE_RAYS], batch.rays)
-    model = eqx.tree_at(lambda m: m.field, state.model, state.model.field.at_step(state.step + 1))
-    budget = SampleBudget(occupancy=cells_state.cells, stop_transmittance=occupancy.train_stop_transmittance)
-    _, report = model.render_within(rays, budget)
-    num_rays = rays.batch_shape[0]
-    expected = [
-        int(report.coarse_live),
-        int(report.fine_live),
-        0,
-        num_rays * model.coarse_sampler.num_samples,
-        num_rays * model.fine_sampler.num_samples,
-    ]
-    assert counts.tolist() == expected
-    assert 0 < counts[0] < counts[3]  # some coarse samples lie in the empty cells
+    counts = np.asarray(steps._count(*steps._last))
+    # The count is what a skipping step at full buffers counts on the same rays and state
+    # (its randomness, annealing and field levels), to the sample.
+    skipping = dataclasses.replace(config, occupancy=occupancy)
+    _, skip_metrics = make_train_step(skipping, budget=(1.0, 1.0))(cells_state, batch)
+    _, coarse, fine, dropped, coarse_dense, fine_dense = np.asarray(skip_metrics.terms.samples)
+    assert counts.tolist() == [coarse, fine, 0.0, coarse_dense, fine_dense] and dropped == 0
+    assert 0 < coarse < coarse_dense  # some coarse samples lie in the empty cells

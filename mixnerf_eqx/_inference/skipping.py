@@ -209,8 +209,8 @@ def _render_level(
 def _render_level_chunked(
     model: MixNeRF, rays: RayBundle, samples: RaySamples, valid: Bool[Array, " batch"], skipping: Skipping
 ) -> tuple[LevelOutputs, Int[Array, ""], Int[Array, ""]]:
-    """`_render_level` as one program (`Skipping.chunk`): the fine level, the samples needed
-    and the field evaluations made."""
+    """`_render_level` as one program (`Skipping.chunk`): the level's outputs, the samples
+    needed and the field evaluations made."""
     assert skipping.chunk is not None
     num_rays, num_samples = samples.means.shape[:2]
     occupied = _occupied(skipping.grid, samples.means, valid)

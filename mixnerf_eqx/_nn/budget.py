@@ -144,6 +144,8 @@ def evaluate_live(
         )
         return outputs, jnp.zeros((), jnp.int32), jnp.asarray(total, jnp.int32)
     if chunk is not None:
+        if capacity < total:
+            raise ValueError("a chunked buffer holds every sample: capacity must be the samples' count")
         chunk = min(chunk, total)
     size = capacity if chunk is None else chunk * math.ceil(min(capacity, total) / chunk)
     # Sample-major positions: position p is sample p // num_rays of ray p % num_rays.

@@ -11,6 +11,7 @@ import dataclasses
 import json
 import os
 import shutil
+import statistics
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -19,12 +20,10 @@ from typing import Any
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._config import Config, ConfigError, SettingWarning, config_to_dict, setting_warnings
 from .._inference.evaluation import Evaluation, Rendered, evaluate
-from .._nn.budget import SampleBudget
 from .._nn.model import MixNeRF
 from .._predictive.uncertainty import predict_views
 from .._util import json_io as strict_json
@@ -60,6 +59,7 @@ from .state import (
     TrainState,
     draw_batch,
     init_train_state,
+    make_live_counter,
     make_train_step,
     occupancy_key,
     training_cells,
@@ -104,12 +104,17 @@ def _scalars(metrics: StepMetrics) -> dict[str, float]:
 
 class _Steps:
     """The jitted training steps: the dense step, and one skipping step per pair of buffer
-    sizes (`budget_bucket`), each compiled once. Every `occupancy.train_budget_every` steps
-    the buffers follow the live shares the last step measured; a smaller buffer is taken only
-    when it pays for itself: when the seconds it saves over the steps left (the step's measured
-    seconds, scaled by the field's share of the buffer) exceed the seconds a compilation took
-    in this run (the first compilation measures it). A larger buffer (live samples beyond the
-    current one) is taken at once. Full buffers run the dense step."""
+    sizes (`budget_bucket`), each compiled once.
+
+    Every `occupancy.train_budget_every` steps the live shares are counted on `PROBE_RAYS` rays
+    of the batch as the next step would count them (`make_live_counter`; the same count whether
+    the steps are dense or skip, so the buffers do not switch back and forth between two ways
+    of counting), and the buffers follow them. A smaller buffer is taken only when it pays for
+    itself: when the seconds it saves over the steps left (the median seconds per step of the
+    last measurement windows, scaled by the field's share of the samples it drops) exceed the
+    longest compilation measured in this run; until both are measured, no new program is
+    compiled. A larger buffer (live samples beyond the current one, or samples a step dropped)
+    is taken at once. Full buffers run the dense step, compiled once on a state without cells."""
 
     # Below this share of live coarse samples the grid is taken to be wrong (it would starve
     # the field of gradient): training falls back to dense steps for the rest of the run.
@@ -118,8 +123,11 @@ class _Steps:
     # (benchmarks/skipping_step.py: 0.8 to 0.95 on the CPU; the lower figure, so that a
     # switch is never predicted to save more than it does).
     FIELD_SHARE = 0.8
-    # Rays of the batch whose live samples a dense step's measurement counts.
+    # Rays of each measured batch whose live samples are counted.
     PROBE_RAYS = 128
+    # Measurement windows whose median gives the seconds per step (a window that holds an
+    # evaluation, a checkpoint or a compilation is an outlier the median ignores).
+    WINDOWS = 5
 
     def __init__(self, config: Config, wrap: Callable[[Any], Any]):
         self.config, self.wrap = config, wrap
@@ -127,10 +135,15 @@ class _Steps:
         self.budget: tuple[float, float] | None = (1.0, 1.0)
         self.fallback: str | None = None
         self.compile_seconds: float | None = None
-        self.step_seconds: float | None = None
+        self.windows: list[float] = []
         self._window: tuple[float, int] | None = None  # (clock, step) where the window began
-        self._compiled_in_window = False
         self._last: tuple[TrainState, Any] | None = None
+        self._count = make_live_counter(config)
+
+    @property
+    def step_seconds(self) -> float | None:
+        """The median seconds per step of the last `WINDOWS` measurement windows."""
+        return statistics.median(self.windows) if self.windows else None
 
     def _program(self, key: Any) -> Any:
         if key == "dense":
@@ -147,41 +160,37 @@ class _Steps:
         skipping = state.cells is not None and self.budget is not None and self.budget != (1.0, 1.0)
         key = self.budget if skipping else "dense"
         step = self.steps.get(key)
+        given = state if skipping else dataclasses.replace(state, cells=None)
         if step is None:
             step = self.steps[key] = self._program(key)
             started = time.perf_counter()
-            new_state, metrics = step(state if skipping else dataclasses.replace(state, cells=None), batch)
+            new_state, metrics = step(given, batch)
             jax.block_until_ready(metrics.terms.total)
             self.compile_seconds = max(self.compile_seconds or 0.0, time.perf_counter() - started)
-            self._compiled_in_window = True
         else:
-            new_state, metrics = step(state if skipping else dataclasses.replace(state, cells=None), batch)
-        self._last = (state, batch)
+            new_state, metrics = step(given, batch)
+        if state.cells is not None and self.budget is not None:
+            # What the count needs of this step's inputs (not the optimiser's state).
+            rays = jax.tree_util.tree_map(lambda x: x[: self.PROBE_RAYS], batch.rays)
+            self._last = (dataclasses.replace(state, opt_state=None), rays)
         return (new_state if skipping else dataclasses.replace(new_state, cells=state.cells)), metrics
 
-    def _probe(self) -> np.ndarray | None:
-        """The live samples of the last batch's first `PROBE_RAYS` rays, counted as a
-        skipping step counts them, while the steps are dense and the grid is complete."""
-        state, batch = self._last
-        if state.cells is None:
-            return None
-        rays = jax.tree_util.tree_map(lambda x: x[: self.PROBE_RAYS], batch.rays)
-        stop = self.config.occupancy.train_stop_transmittance
-        return np.asarray(_live_counts(state.model, state.cells, rays, state.step, stop))
-
     def _time_window(self, done: int) -> None:
-        """The seconds per step since the last measurement (windows holding a compilation
-        are not counted)."""
+        """The seconds per step since the last measurement, kept for the median."""
         now = time.perf_counter()
-        if self._window is not None and not self._compiled_in_window and done > self._window[1]:
-            self.step_seconds = (now - self._window[0]) / (done - self._window[1])
-        self._window, self._compiled_in_window = (now, done), False
+        if self._window is not None and done > self._window[1]:
+            per_step = (now - self._window[0]) / (done - self._window[1])
+            self.windows = [*self.windows, per_step][-self.WINDOWS :]
+        self._window = (now, done)
 
     def _pays(self, wanted: tuple[float, float], counts: tuple[float, float], done: int) -> bool:
         """Whether switching from the current buffers to `wanted` saves more seconds over the
-        rest of the run than compiling it costs."""
-        if wanted in self.steps or self.compile_seconds is None or self.step_seconds is None:
+        rest of the run than compiling it costs (a program already compiled always pays; none
+        is compiled before a compilation and a step have been timed)."""
+        if wanted in self.steps:
             return True
+        if self.compile_seconds is None or self.step_seconds is None:
+            return False
         assert self.budget is not None
         total = counts[0] + counts[1]
 
@@ -196,14 +205,13 @@ class _Steps:
     def measure(self, done: int, metrics: StepMetrics) -> str | None:
         """Follows the live shares; returns a warning when it falls back to dense steps."""
         occupancy = self.config.occupancy
-        samples = metrics.terms.samples
         if self.budget is None or not _due(done, occupancy.train_budget_every):
             return None
         self._time_window(done)
-        # A skipping step counts its live samples; a dense step's are counted on a probe.
-        counts = np.asarray(samples)[1:] if samples is not None else self._probe()
-        if counts is None:
+        if self._last is None:
             return None
+        counts = np.asarray(self._count(*self._last))
+        self._last = None
         coarse, fine, _, coarse_dense, fine_dense = (float(x) for x in counts)
         if coarse / coarse_dense < self.MIN_LIVE_SHARE:
             self.budget = None
@@ -213,34 +221,19 @@ class _Steps:
                 "occupancy.box_radius (does the box hold the scene?) and occupancy.density_threshold."
             )
             return self.fallback
-        current = self.budget
+        current, headroom = self.budget, occupancy.train_headroom
         wanted = (
-            budget_bucket(coarse / coarse_dense, occupancy.train_headroom, current[0]),
-            budget_bucket(fine / fine_dense, occupancy.train_headroom, current[1]),
+            budget_bucket(coarse / coarse_dense, headroom, current[0]),
+            budget_bucket(fine / fine_dense, headroom, current[1]),
         )
+        samples = metrics.terms.samples
+        if samples is not None and float(np.asarray(samples)[3]) > 0:
+            # The step itself dropped live samples: its buffers were too small; a rung up.
+            wanted = (budget_bucket(current[0] * 2**0.5, 0.0), budget_bucket(current[1] * 2**0.5, 0.0))
         grows = wanted[0] > current[0] or wanted[1] > current[1]
         if wanted != current and (grows or self._pays(wanted, (coarse_dense, fine_dense), done)):
             self.budget = wanted
         return None
-
-
-@eqx.filter_jit
-def _live_counts(model: MixNeRF, cells: Any, rays: Any, step: Any, stop_transmittance: float) -> Any:
-    """Live coarse and fine samples of `rays` (deterministic samples), as a skipping step
-    counts them: `[coarse, fine, 0, coarse total, fine total]`."""
-    model = eqx.tree_at(lambda m: m.field, model, model.field.at_step(step + 1))
-    budget = SampleBudget(occupancy=cells, stop_transmittance=stop_transmittance)
-    _, report = model.render_within(rays, budget)
-    num_rays = rays.batch_shape[0]
-    return jnp.stack(
-        [
-            report.coarse_live.astype(float),
-            report.fine_live.astype(float),
-            jnp.zeros(()),
-            jnp.asarray(float(num_rays * model.coarse_sampler.num_samples)),
-            jnp.asarray(float(num_rays * model.fine_sampler.num_samples)),
-        ]
-    )
 
 
 class _RunLog:

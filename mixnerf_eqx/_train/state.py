@@ -386,6 +386,35 @@ def make_train_step(
     return eqx.filter_jit(train_step)
 
 
+def make_live_counter(config: Config) -> Callable[[TrainState, RayBundle], Float[Array, "5"]]:
+    """`count(state, rays)`: the live samples of `rays` as the next skipping step would count
+    them (its annealed sample space, its field's levels, its randomness, `state.cells`), as
+    `[coarse, fine, 0, coarse total, fine total]`; forward only. Training counts a few rays of
+    each measured batch with it to size the skipping buffers, also while the steps are dense."""
+    lengths, train_cfg, occupancy = schedule_steps(config), config.train, config.occupancy
+
+    @eqx.filter_jit
+    def count(state: TrainState, rays: RayBundle) -> Float[Array, "5"]:
+        step_number = state.step + 1
+        rays = anneal_sample_space(rays, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid)
+        model = eqx.tree_at(lambda m: m.field, state.model, state.model.field.at_step(step_number))
+        budget = SampleBudget(occupancy=state.cells, stop_transmittance=occupancy.train_stop_transmittance)
+        _, report = model.render_within(rays, budget, key=_step_keys(state)[1])
+        num_rays = rays.batch_shape[0]
+        totals = [float(num_rays * model.coarse_sampler.num_samples), float(num_rays * model.fine_sampler.num_samples)]
+        return jnp.stack(
+            [
+                report.coarse_live.astype(float),
+                report.fine_live.astype(float),
+                jnp.zeros(()),
+                jnp.asarray(totals[0]),
+                jnp.asarray(totals[1]),
+            ]
+        )
+
+    return count
+
+
 def occupancy_key(key: PRNGKey, step: Int[Array, ""] | int) -> PRNGKey:
     """The randomness of the occupancy grid's work at `step` (its updates, and the final
     render's threshold calibration at `step + 1`): a stream apart from the steps' own."""

@@ -103,17 +103,34 @@ def redeliver_dropped_interrupts() -> None:
     _redelivering = True
 
 
+STOPPED_WHILE_LOADING = "stopped while loading; nothing was done"
+
+
 def quiet_interrupts_while_starting() -> None:
-    """A Ctrl-C while a command is still importing (before its own handling is in place) ends
-    it with one line instead of a traceback through the imports: nothing has been written yet.
-    Other uncaught exceptions go to the hook that was there."""
-    previous = sys.excepthook
+    """A Ctrl-C while a command is still importing the package (before its entry module can
+    catch it, `mixnerf_eqx._util.entry`) ends it with the same one line and status 130 instead
+    of a traceback through the imports: nothing has been done yet. Other uncaught exceptions
+    go to the hook that was there; `stop_quieting_interrupts` puts it back once the command's
+    modules are loaded."""
+    global _previous_excepthook
+    _previous_excepthook = previous = sys.excepthook
 
     def hook(kind: type[BaseException], value: BaseException, traceback: Any) -> None:
         if issubclass(kind, KeyboardInterrupt):
-            print("\ninterrupted while starting: nothing was written", file=sys.stderr)
+            print(STOPPED_WHILE_LOADING, file=sys.stderr)
+            sys.stdout.flush()
             sys.stderr.flush()
             os._exit(130)  # the commands' status for a Ctrl-C
         previous(kind, value, traceback)
 
     sys.excepthook = hook
+
+
+_previous_excepthook: Any = None
+
+
+def stop_quieting_interrupts() -> None:
+    """Puts back the hook `quiet_interrupts_while_starting` replaced (if it did)."""
+    global _previous_excepthook
+    if _previous_excepthook is not None:
+        sys.excepthook, _previous_excepthook = _previous_excepthook, None

@@ -5,8 +5,9 @@ The kernel releases it when the holder exits in any way (return, exception, Ctrl
 so a lock is never stale: a folder whose owner is gone can be taken at once. A second
 writer fails at the start, before touching anything, with a `FolderBusyError` naming the
 holder (its pid, host and start time, which the holder writes into the lock file). Readers
-(`eval`, `render`) take no lock: checkpoints and metrics are written to a staging name and
-renamed into place, so a reader sees the old file or the new one, never half of one.
+of a run (`eval`, `render`) take no lock on it: checkpoints and metrics are written to a staging
+name and renamed into place, so a reader sees the old file or the new one, never half of one.
+`eval` locks its own output instead (`.<folder>.eval.lock` beside it), one evaluation at a time.
 
 Where `fcntl` does not exist (Windows), the lock is a no-op and says so once.
 """

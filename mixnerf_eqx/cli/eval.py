@@ -207,20 +207,20 @@ def run(args: argparse.Namespace) -> dict:
     if args.max_views > 0:
         view_ids = evenly_spaced(views.num_views, min(args.max_views, views.num_views))
     num_views = views.num_views if view_ids is None else len(view_ids)
-    grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
-    chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
     final = args.out or run_dir / ("eval" if args.split == "test" else f"eval_{args.split}")
-    # One evaluation at a time into a folder: a second one is refused before it touches the
-    # first one's staging folder or results.
-    lock = contextlib.ExitStack()
+    # One evaluation at a time into a folder: a second one is refused before it builds a grid
+    # or touches the first one's staging folder or results.
+    lock, target = contextlib.ExitStack(), final.resolve()
     try:
-        final.parent.mkdir(parents=True, exist_ok=True)
+        target.parent.mkdir(parents=True, exist_ok=True)
         lock.enter_context(
-            hold_folder(final.parent, "evaluation", "--out", name=f".{final.name}.eval.lock", label=final)
+            hold_folder(target.parent, "evaluation", "--out", name=f".{target.name}.eval.lock", label=final)
         )
     except PermissionError:
         raise ConfigError(f"{final.parent} is not writable: give --out a folder you can write to") from None
     with lock:
+        grid, skipping, choice, grid_seconds = _skipping_for(restored, args.skipping)
+        chunk = args.chunk or (config.occupancy.chunk if skipping is not None else config.train.render_chunk)
         out = _staging_folder(final)
         try:
             bar = Progress(num_views, unit="view", enabled=not args.no_progress)
