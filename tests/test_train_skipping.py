@@ -108,6 +108,9 @@ def test_chunks_past_the_live_samples_are_not_evaluated():
     )(means)
     jax.effects_barrier()
     assert calls == [80] and int(made) == 80
+    # A chunked buffer holds every sample: a smaller capacity would drop samples unreported.
+    with pytest.raises(ValueError, match="chunked buffer holds every sample"):
+        evaluate_live(query, means, means, jnp.ones((10, 3)), None, everything, 40, with_mixture_heads=False, chunk=16)
 
 
 def test_a_buffer_too_small_drops_the_farthest_samples_of_every_ray(grid_setup):
