@@ -69,7 +69,7 @@ def _mean_psnr(estimates: np.ndarray, truths: np.ndarray) -> float:
 
 def _test_rays(poses: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray]:
     """Origins and (unnormalised, camera z = -1) directions of every pixel of `poses`, float64."""
-    camera_dirs = mx.pixel_directions(scene._focal(resolution), resolution, resolution)
+    camera_dirs = mx.nn.pixel_directions(scene._focal(resolution), resolution, resolution)
     directions = np.einsum("nij,hwj->nhwi", poses[:, :, :3], camera_dirs)
     return np.broadcast_to(poses[:, None, None, :, 3], directions.shape), directions
 

@@ -3,8 +3,8 @@ conformal intervals, fitted on validation views and scored on test views.
 
 For each scene and seed: train MixNeRF (`mx.fit`, the scene's config as shipped), then fit on
 the scene's validation views (which are neither training nor test views, and not near the
-test views: `mixnerf_eqx.data`'s splits) one temperature on every beta (`mx.fit_temperature`),
-an isotonic map of the predictive CDF and split-conformal intervals (`mx.fit_recalibration`),
+test views: `mixnerf_eqx.data`'s splits) one temperature on every beta (`mx.uncertainty.fit_temperature`),
+an isotonic map of the predictive CDF and split-conformal intervals (`mx.uncertainty.fit_recalibration`),
 and score each on the test views, from the coarse level's colour mixture (where the NLL
 trains) and the fine level's termination distance:
 
@@ -77,8 +77,8 @@ def timed_passes(model: mx.MixNeRF, views: Views, dataset, chunk: int) -> dict[s
     first = views.select([0])
     passes = {
         "render": lambda v: mx.render_views(model, v, dataset.near, dataset.far, chunk),
-        "predictive": lambda v: mx.predict_views(model, v, dataset.near, dataset.far, chunk),
-        "predictive_with_mode": lambda v: mx.predict_views(
+        "predictive": lambda v: mx.uncertainty.predict_views(model, v, dataset.near, dataset.far, chunk),
+        "predictive_with_mode": lambda v: mx.uncertainty.predict_views(
             model, v, dataset.near, dataset.far, chunk, with_mode=True
         ),
     }
@@ -111,24 +111,24 @@ def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dic
     val, test = dataset.split("val"), dataset.test
     print(f"{name} seed {seed}: trained {config.train.max_steps} steps in {train_s:.0f} s")
 
-    pit = mx.calibration_pit(model, val, dataset.near, dataset.far, args.chunk, max_pixels=args.calibration_pixels)
+    pit = mx.uncertainty.calibration_pit(model, val, dataset.near, dataset.far, args.chunk, max_pixels=args.calibration_pixels)
     picked = jax.tree_util.tree_map(
         lambda x: x[np.sort(np.random.default_rng(0).choice(x.shape[0], min(x.shape[0], args.calibration_pixels), replace=False))],
         (rays_for_views(val, dataset.near, dataset.far).reshape(-1), jnp.asarray(val.images.reshape(-1, 3))),
     )
-    temperature = mx.fit_temperature(mx.collect_mixtures(model, picked[0], args.chunk), picked[1])
+    temperature = mx.uncertainty.fit_temperature(mx.uncertainty.collect_mixtures(model, picked[0], args.chunk), picked[1])
     where = f"{val.num_views} validation views"
     depth_pit = pit["depth_cdf"] if pit["depth_cdf"].size else None
     fitted = {
-        "raw": (mx.Recalibration.raw(MASSES), 1.0),
-        "temperature": (mx.Recalibration.raw(MASSES), temperature),
+        "raw": (mx.uncertainty.Recalibration.raw(MASSES), 1.0),
+        "temperature": (mx.uncertainty.Recalibration.raw(MASSES), temperature),
     }
     for method in ("isotonic", "conformal"):
-        recalibration = mx.Recalibration.fit(method, pit["colour_cdf"], depth_pit, MASSES, fitted_on=where)
+        recalibration = mx.uncertainty.Recalibration.fit(method, pit["colour_cdf"], depth_pit, MASSES, fitted_on=where)
         fitted[method] = (recalibration, 1.0)
     reports = {}
     for method, (recalibration, factor) in fitted.items():
-        maps = mx.predict_views(
+        maps = mx.uncertainty.predict_views(
             model,
             test,
             dataset.near,
@@ -138,11 +138,11 @@ def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dic
             temperature=factor,
             levels=recalibration.interval_levels(),
         )
-        report = mx.coverage_report(maps, test.images, test.depths, recalibration)
+        report = mx.uncertainty.coverage_report(maps, test.images, test.depths, recalibration)
         report.update(
             {
                 key: value
-                for key, value in mx.calibration_report(maps, test.images, test.depths).items()
+                for key, value in mx.uncertainty.calibration_report(maps, test.images, test.depths).items()
                 if "ause" in key or "random" in key
             }
         )

@@ -14,8 +14,8 @@
 mlp.matmul_dtype=bfloat16
 
 Every variant is trained on every scene for `--budget-s` seconds of training time by its own
-loop over the library's `TrainState` and jitted step (`mx.init_train_state`,
-`mx.make_train_step`: the step `fit` uses; `harness.TrainingRun`). The step is compiled ahead
+loop over the library's `TrainState` and jitted step (`mx.training.init_train_state`,
+`mx.training.make_train_step`: the step `fit` uses; `harness.TrainingRun`). The step is compiled ahead
 of time with `.lower(...).compile()` (its time is reported as `compile_s`, not counted), and
 each step is waited for and timed, so the clock holds step time only. At the
 evaluation marks (every `--eval-every-s` seconds of training time, by default an eighth of the
@@ -259,7 +259,7 @@ def train_variant(
                 next_mark += 1
             if passed is not None:  # a slow step may pass several marks: evaluate once
                 evaluate_now(passed)
-    except mx.TrainingDiverged as error:
+    except mx.training.TrainingDiverged as error:
         status = f"diverged: {error}"
         print(f"[{scene.name} {variant.name}] {status}")
     if not points or points[-1]["step"] != run.step:

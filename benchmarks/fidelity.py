@@ -273,7 +273,7 @@ def _weighted_term(model, name, rays, target, lambdas, weights, key, mask=None):
         rays = jax.tree_util.tree_map(lambda x: x[chosen], rays)
         target = target[chosen]
     lambda_colour, lambda_depth, lambda_regen, coarse = lambdas
-    terms = mx.loss_terms(model(rays, key=key), model, rays, target, jnp.asarray(lambda_colour), weights)
+    terms = mx.training.loss_terms(model(rays, key=key), model, rays, target, jnp.asarray(lambda_colour), weights)
     if name == "squared_error":
         return 3 * (terms["mse_fine"] + coarse * terms["mse_coarse"])
     scale = {"nll_colour": lambda_colour, "nll_depth": lambda_depth, "nll_regen": lambda_regen}[name]
@@ -303,13 +303,13 @@ def diagnose(
         while run.step < step:
             run.advance()
         lambda_colour = float(
-            mx.linear_ramp(
+            mx.training.linear_ramp(
                 step + 1, loss.lambda_colour_start, loss.lambda_colour_end, loss.lambda_colour_steps
             )
         )
         outputs = run.model(rays, key=key)
         opacity = outputs.coarse.acc
-        weights = mx.LossWeights.from_config(loss, config.method)
+        weights = mx.training.LossWeights.from_config(loss, config.method)
 
         row: dict[str, Any] = {
             "step": step,

@@ -66,7 +66,7 @@ RESULTS = REPO / "benchmarks" / "results"
 # allocator they preload (mimalloc on Linux; `MIXNERF_ALLOCATOR=system` times without it).
 # Only a script of this folder run as a program does; a test importing the harness does not.
 if Path(sys.argv[0]).resolve().parent == Path(__file__).resolve().parent:
-    mx.preload_allocator()
+    mx.runtime.preload_allocator()
 
 SCENE_PRESETS = {
     "lego": str(REPO / "configs" / "blender4.toml"),
@@ -234,7 +234,7 @@ def downscale_views(views: Views, factor: int) -> tuple[Views, int]:
     """Area-downsamples the views by `factor` (or the largest factor <= it that divides both
     image sides); focal length and intrinsics are divided by it.
 
-    Pixel centres sit at `col + 0.5` (see `mixnerf_eqx.camera_rays`), so a box average over
+    Pixel centres sit at `col + 0.5` (see `mixnerf_eqx.nn.camera_rays`), so a box average over
     `f x f` blocks is exactly the camera with every intrinsic divided by `f`; NDC rays stay
     in the same NDC space, because it depends on focal / width and focal / height only.
     Object masks are kept by majority; true depths are dropped (not reported here).
@@ -307,7 +307,7 @@ class DatasetCache:
 @contextlib.contextmanager
 def typechecking(enabled: bool) -> Iterator[None]:
     """Runtime shape checks on or off for a block (they act while JAX traces)."""
-    previous = mx.typecheck_enabled()
+    previous = mx.runtime.typecheck_enabled()
     mx.set_typecheck(enabled)
     try:
         yield
@@ -318,11 +318,11 @@ def typechecking(enabled: bool) -> Iterator[None]:
 class TrainingRun:
     """A `TrainState` and the library's compiled step, timed step by step.
 
-    The state comes from `mx.init_train_state` (the config's seed, as in `fit`). `compile()`
+    The state comes from `mx.training.init_train_state` (the config's seed, as in `fit`). `compile()`
     lowers and compiles the batch draw and the step ahead of time without running them;
     `advance()` runs one step to completion and returns its wall time.
 
-    With `occupancy.enabled`, the grid is kept up to date as `fit` keeps it (`mx.update_grid`
+    With `occupancy.enabled`, the grid is kept up to date as `fit` keeps it (`mx.training.update_grid`
     every `occupancy.update_every` steps, compiled ahead too) and those updates count as
     training time; `skipping()` gives the rendering options for evaluation, with the grid
     refreshed in every cell as `fit` does before its final evaluation.
@@ -331,10 +331,10 @@ class TrainingRun:
     def __init__(self, config: Config, dataset: Dataset):
         self.config = config
         self.dataset = dataset
-        self.state = mx.init_train_state(config, dataset)
-        self.data = mx.training_rays(dataset, config.loss)
-        self._step_fn = mx.make_train_step(config)
-        self._draw = eqx.filter_jit(mx.draw_batch)
+        self.state = mx.training.init_train_state(config, dataset)
+        self.data = mx.training.training_rays(dataset, config.loss)
+        self._step_fn = mx.training.make_train_step(config)
+        self._draw = eqx.filter_jit(mx.training.draw_batch)
         self._compiled = None
         self.skipped = 0
         self._streak = 0
@@ -357,7 +357,7 @@ class TrainingRun:
         step = self._step_fn.lower(self.state, draw(self.data, self.state, batch_size)).compile()
         update = None
         if self.state.grid is not None:
-            update = mx.update_grid.lower(self.state, self.config.occupancy).compile()
+            update = mx.training.update_grid.lower(self.state, self.config.occupancy).compile()
         self._compiled = (draw, step, update)
         return time.perf_counter() - started
 
@@ -377,16 +377,16 @@ class TrainingRun:
             self.skipped += 1
             self._streak += 1
             if self._streak >= self.config.train.max_nonfinite_steps:
-                raise mx.TrainingDiverged(f"{self._streak} consecutive non-finite steps at step {self.step}")
+                raise mx.training.TrainingDiverged(f"{self._streak} consecutive non-finite steps at step {self.step}")
         else:
             self._streak = 0
         return seconds
 
-    def skipping(self) -> mx.Skipping | None:
+    def skipping(self) -> mx.inference.Skipping | None:
         """Rendering options for evaluating now (`None`: dense), not counted as training."""
         if self.state.grid is None:
             return None
-        key = mx.occupancy_key(self.state.key, self.step + 1)
+        key = mx.training.occupancy_key(self.state.key, self.step + 1)
         occupancy = dataclasses.replace(self.config.occupancy, calibrate=False)
         grid, _ = mx.runs.grid_for_rendering(
             occupancy, self.dataset, self.model, key=key, grid=self.state.grid
@@ -457,14 +457,14 @@ def machine_info() -> dict[str, Any]:
         "backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()],
         "device_kind": jax.devices()[0].device_kind,
-        "allocator": Path(mx.allocator_in_use()).name,
+        "allocator": Path(mx.runtime.allocator_in_use()).name,
     }
     with contextlib.suppress(OSError):
         info["load_average_at_start"] = list(os.getloadavg())
     return info
 
 
-def grid_threshold(grid: mx.OccupancyGrid) -> float:
+def grid_threshold(grid: mx.inference.OccupancyGrid) -> float:
     """A grid's density threshold (a float32 array leaf) as the shortest decimal that reads back
     as the same float32: 0.01, not 0.009999999776482582."""
     return float(np.format_float_positional(np.float32(grid.threshold), unique=True))

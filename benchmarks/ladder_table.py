@@ -6,7 +6,7 @@ does MixNeRF hold there?
 
 Each rung is one `fidelity.py` result file, `fidelity_<backend>_ladder_<depth>x<width>.jsonl`:
 the fidelity protocol on the built-in scene at 500 epochs, MixNeRF and its baseline, with the
-MLP set by `--set mlp.depth=... mlp.width=...` (`gpu_ladder.sh` and `benchmarks/README.md` give
+MLP set by `--set mlp.depth=... mlp.width=...` (`gpu_ladder.sh` and `benchmarks/fidelity.md` give
 the commands). This script puts the rungs side by side, smallest MLP first:
 
 - per rung and method: the test PSNR at the end, the test PSNR at the curve's best point by

@@ -3,9 +3,9 @@
     python benchmarks/memory.py   # peak memory of a step and of rendering frames
 
 (a) One training step at the config's batch with `model.remat` false and true: the batch
-draw and `mx.make_train_step`'s step compiled as one function over the ray table, on a
+draw and `mx.training.make_train_step`'s step compiled as one function over the ray table, on a
 synthetic scene (`--train-views` views of `--train-image-size` pixels square). (b) One
-frame rendered with `mx.render_rays`, for several square frame sizes at one chunk
+frame rendered with `mx.inference.render_rays`, for several square frame sizes at one chunk
 (`--frame-chunk`, default the config's `train.render_chunk`) and for several chunks at one
 frame size (`--chunk-frame`); the rays come from a synthetic camera, the model is freshly
 initialised (its values do not change the memory).
@@ -197,8 +197,8 @@ def synthetic_dataset(views: int, size: int) -> Dataset:
     return Dataset(name="synthetic", train=split(views), test=split(1), near=NEAR, far=FAR)
 
 
-def frame_rays(size: int) -> mx.RayBundle:
-    return mx.camera_rays(synthetic_poses(1), FOCAL_PER_PIXEL * size, size, size, NEAR, FAR)
+def frame_rays(size: int) -> mx.nn.RayBundle:
+    return mx.nn.camera_rays(synthetic_poses(1), FOCAL_PER_PIXEL * size, size, size, NEAR, FAR)
 
 
 def measure_machine(config: mx.Config) -> dict[str, Any]:
@@ -234,13 +234,13 @@ def measure_train(config: mx.Config, views: int, image_size: int, execute: bool)
     """The batch draw and the training step compiled as one function over the ray table (so
     that the table counts, as it is held while training), on a synthetic scene."""
     dataset = synthetic_dataset(views, image_size)
-    state = mx.init_train_state(config, dataset)
-    data = mx.training_rays(dataset)
-    step_fn, batch_size = mx.make_train_step(config), config.train.batch_size
+    state = mx.training.init_train_state(config, dataset)
+    data = mx.training.training_rays(dataset)
+    step_fn, batch_size = mx.training.make_train_step(config), config.train.batch_size
 
     @eqx.filter_jit
     def draw_and_step(data, state):
-        return step_fn(state, mx.draw_batch(data, state, batch_size))
+        return step_fn(state, mx.training.draw_batch(data, state, batch_size))
 
     started = time.perf_counter()
     compiled = draw_and_step.lower(data, state).compile()
@@ -257,7 +257,7 @@ def measure_train(config: mx.Config, views: int, image_size: int, execute: bool)
     return row
 
 
-def pad_to(rays: mx.RayBundle, count: int) -> mx.RayBundle:
+def pad_to(rays: mx.nn.RayBundle, count: int) -> mx.nn.RayBundle:
     """The first `count` rays, the last one repeated where there are fewer (as `render_rays` pads)."""
     piece = rays[:count]
     missing = count - piece.origins.shape[0]
@@ -270,8 +270,8 @@ def pad_to(rays: mx.RayBundle, count: int) -> mx.RayBundle:
 
 def measure_render(config: mx.Config, size: int, chunk: int, execute: bool) -> dict[str, Any]:
     """One chunk's compiled figures (the dense render `model(rays).fine` of `chunk` rays, the
-    program `mx.render_rays` runs per chunk) and, when executed, a whole frame through
-    `mx.render_rays`."""
+    program `mx.inference.render_rays` runs per chunk) and, when executed, a whole frame through
+    `mx.inference.render_rays`."""
     model = mx.build_model(config, key=jax.random.key(0))
     # Without rendering, only one chunk's rays are needed for the compiled figures.
     rays = frame_rays(size if execute else math.isqrt(chunk - 1) + 1)
@@ -287,10 +287,10 @@ def measure_render(config: mx.Config, size: int, chunk: int, execute: bool) -> d
     del compiled
     if execute:
         # One chunk through `render_rays` first, so that the measured frame compiles nothing.
-        mx.render_rays(model, piece, chunk)
+        mx.inference.render_rays(model, piece, chunk)
         del piece
         row["ray_table_bytes"] = tree_bytes(rays)
-        row["measured"] = measured(lambda: mx.render_rays(model, rays, chunk))
+        row["measured"] = measured(lambda: mx.inference.render_rays(model, rays, chunk))
     return row
 
 

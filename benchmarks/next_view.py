@@ -105,7 +105,7 @@ def main() -> None:
             for _ in BUDGETS:
                 chosen = joined(dataset.train, pool, farthest_order)
                 left = [i for i in range(pool.num_views) if i not in farthest_order]
-                order = mx.farthest_first(pool.camtoworlds[left], chosen.camtoworlds)
+                order = mx.uncertainty.farthest_first(pool.camtoworlds[left], chosen.camtoworlds)
                 farthest_order.append(left[int(order[0])])
             seed_runs = {"base": {k: v for k, v in base.items() if k != "model"}}
             for strategy in STRATEGIES:

@@ -8,7 +8,7 @@ records, on a fixed batch of training rays rendered deterministically, how the d
 the opacity develop (median and 90th percentile of the coarse samples' density, mean
 accumulated opacity, fine MSE), which shows what the strongly weighted colour NLL of the
 first steps (lambda_C from 4.0) does to the geometry. Each run is the library's
-`mx.init_train_state` and `mx.make_train_step`, driven step by step here.
+`mx.training.init_train_state` and `mx.training.make_train_step`, driven step by step here.
 
 Variants:
 
@@ -63,7 +63,7 @@ def reset_adam(opt_state):
 
 
 @eqx.filter_jit
-def probe(model: mx.MixNeRF, batch: mx.Batch) -> dict[str, jax.Array]:
+def probe(model: mx.MixNeRF, batch: mx.training.Batch) -> dict[str, jax.Array]:
     outputs = model(batch.rays)
     density = outputs.coarse.field.density
     return {
@@ -78,10 +78,10 @@ def run_variant(args: argparse.Namespace, name: str) -> dict:
     extra, reset = VARIANTS[name]
     config = mx.load_config(args.config, [*args.overrides, *extra])
     dataset = load_dataset(config.data)
-    data = mx.training_rays(dataset)
-    state = mx.init_train_state(config, dataset)
-    step_fn = mx.make_train_step(config, max_traces=1)
-    draw = eqx.filter_jit(mx.draw_batch)
+    data = mx.training.training_rays(dataset)
+    state = mx.training.init_train_state(config, dataset)
+    step_fn = mx.training.make_train_step(config, max_traces=1)
+    draw = eqx.filter_jit(mx.training.draw_batch)
     # The probe's rays: drawn once, with a key of their own, the same for every variant.
     probe_batch = draw(data, eqx.tree_at(lambda s: s.key, state, jax.random.key(7)), PROBE_RAYS)
     max_steps = config.train.max_steps

@@ -21,7 +21,7 @@ their ratios are comparable:
 - the parts outside the field, on random inputs of the step's shapes: `random numbers`
   (per-ray and per-sample keys, jitter and density noise as the model draws them),
   `coarse samples`, `fine samples` (resampling from coarse weights), `compositing`
-  (both levels, forward + backward), the `loss terms` (`mx.loss_terms` on rendered levels,
+  (both levels, forward + backward), the `loss terms` (`mx.training.loss_terms` on rendered levels,
   forward + backward: the MSE alone, each NLL the config weights added alone, then all of
   them), `optimiser` (clipping and Adam), `batch draw` (with the annealing).
 
@@ -68,24 +68,24 @@ def timed(fn: Callable, *args, repeats: int) -> dict[str, Any]:
 def step_rows(config: mx.Config, dataset: Dataset, repeats: int, *, loss: bool = True) -> dict[str, dict]:
     """The whole step (with its batch draw, as `fit` takes a step) and, with `loss`, the loss
     and its gradient, and the loss alone."""
-    state = mx.init_train_state(config, dataset)
-    data = mx.training_rays(dataset)
+    state = mx.training.init_train_state(config, dataset)
+    data = mx.training.training_rays(dataset)
     batch_size = config.train.batch_size
-    step_fn = mx.make_train_step(config)
+    step_fn = mx.training.make_train_step(config)
 
     @eqx.filter_jit
     def draw_and_step(data, state):
-        return step_fn(state, mx.draw_batch(data, state, batch_size))
+        return step_fn(state, mx.training.draw_batch(data, state, batch_size))
 
     rows = {"step": timed(draw_and_step, data, state, repeats=repeats)}
     if not loss:
         return rows
-    batch = eqx.filter_jit(mx.draw_batch)(data, state, batch_size)
-    weights = mx.LossWeights.from_config(config.loss, config.method)
+    batch = eqx.filter_jit(mx.training.draw_batch)(data, state, batch_size)
+    weights = mx.training.LossWeights.from_config(config.loss, config.method)
     lambda_colour, key = jnp.asarray(0.5), jax.random.key(1)
 
     def total(model, rays, rgb, lambda_colour, key):
-        return mx.loss_fn(model, rays, rgb, lambda_colour, weights, key=key)[0]
+        return mx.training.loss_fn(model, rays, rgb, lambda_colour, weights, key=key)[0]
 
     args = (state.model, batch.rays, batch.rgb, lambda_colour, key)
     rows["loss + gradient"] = timed(eqx.filter_jit(eqx.filter_value_and_grad(total)), *args, repeats=repeats)
@@ -93,7 +93,7 @@ def step_rows(config: mx.Config, dataset: Dataset, repeats: int, *, loss: bool =
     return rows
 
 
-def summed_encoding(field: mx.GridField, points: jax.Array) -> jax.Array:
+def summed_encoding(field: mx.nn.GridField, points: jax.Array) -> jax.Array:
     """A grid field's encoding alone at points of `[-1, 1]^3`, as the field reads it (per point
     under `jax.vmap`, or batched: `grid.lookup`), its features summed."""
     if field.lookup == "batched":
@@ -115,7 +115,7 @@ def field_rows(config: mx.Config, model: mx.MixNeRF, repeats: int) -> dict[str, 
         ),
         "field forward": timed(eqx.filter_jit(harness.summed_field), model, *points, repeats=repeats),
     }
-    if isinstance(model.field, mx.GridField):
+    if isinstance(model.field, mx.nn.GridField):
         unit = jnp.clip(points[0] / 2.0, -1.0, 1.0)
         rows["encoding forward + backward"] = timed(
             eqx.filter_jit(eqx.filter_grad(summed_encoding)), model.field, unit, repeats=repeats
@@ -124,10 +124,10 @@ def field_rows(config: mx.Config, model: mx.MixNeRF, repeats: int) -> dict[str, 
     return rows
 
 
-def random_field_outputs(model: mx.MixNeRF, key: jax.Array, batch: int, samples: int) -> mx.FieldOutputs:
+def random_field_outputs(model: mx.MixNeRF, key: jax.Array, batch: int, samples: int) -> mx.nn.FieldOutputs:
     keys = jax.random.split(key, 4)
     mixture = model.mixture is not None
-    return mx.FieldOutputs(
+    return mx.nn.FieldOutputs(
         density=jax.random.exponential(keys[0], (batch, samples)),
         rgb=jax.random.uniform(keys[1], (batch, samples, 3)),
         beta=jax.random.uniform(keys[2], (batch, samples, 3), minval=0.01, maxval=1.0) if mixture else None,
@@ -137,12 +137,12 @@ def random_field_outputs(model: mx.MixNeRF, key: jax.Array, batch: int, samples:
 
 def part_rows(config: mx.Config, dataset: Dataset, repeats: int) -> dict[str, dict]:
     """The parts of a step outside the field, each on inputs of the step's shapes."""
-    state = mx.init_train_state(config, dataset)
+    state = mx.training.init_train_state(config, dataset)
     model = state.model
-    data = mx.training_rays(dataset)
+    data = mx.training.training_rays(dataset)
     batch_size = config.train.batch_size
     n_coarse, n_fine = config.model.num_coarse_samples, config.model.num_fine_samples
-    batch = eqx.filter_jit(mx.draw_batch)(data, state, batch_size)
+    batch = eqx.filter_jit(mx.training.draw_batch)(data, state, batch_size)
     rays, target = batch.rays, batch.rgb
     keys = jax.random.split(jax.random.key(5), 8)
     rows = {}
@@ -194,8 +194,8 @@ def part_rows(config: mx.Config, dataset: Dataset, repeats: int) -> dict[str, di
     # The loss terms on rendered levels, forward and backward (to the field outputs), with
     # the terms switched on one at a time through the static weights (a zero weight is not
     # computed): the MSE alone, then each NLL added alone, then the config's weights.
-    outputs = mx.RenderOutputs(coarse=coarse_level, fine=fine_level)
-    weights = mx.LossWeights.from_config(config.loss, config.method)
+    outputs = mx.nn.RenderOutputs(coarse=coarse_level, fine=fine_level)
+    weights = mx.training.LossWeights.from_config(config.loss, config.method)
     nlls = {"nll_colour": "colour NLL", "nll_depth": "depth NLL", "nll_regen": "regenerated colour NLL"}
     mse_only = weights.replace(**dict.fromkeys(nlls, 0.0))
     weight_rows = {"loss terms: MSE only": mse_only}
@@ -208,7 +208,7 @@ def part_rows(config: mx.Config, dataset: Dataset, repeats: int) -> dict[str, di
     for name, row_weights in weight_rows.items():
 
         def total(outputs, model, rays, target, lambda_colour, row_weights=row_weights):
-            return mx.loss_terms(outputs, model, rays, target, lambda_colour, row_weights).total
+            return mx.training.loss_terms(outputs, model, rays, target, lambda_colour, row_weights).total
 
         rows[f"{name} (forward + backward)"] = timed(
             eqx.filter_jit(eqx.filter_grad(total)),
@@ -234,9 +234,9 @@ def part_rows(config: mx.Config, dataset: Dataset, repeats: int) -> dict[str, di
 
     @eqx.filter_jit
     def batch_draw(data, state):
-        batch = mx.draw_batch(data, state, batch_size)
+        batch = mx.training.draw_batch(data, state, batch_size)
         train = config.train
-        rays = mx.anneal_sample_space(batch.rays, 7, train.anneal_steps, train.anneal_start, train.anneal_mid)
+        rays = mx.training.anneal_sample_space(batch.rays, 7, train.anneal_steps, train.anneal_start, train.anneal_mid)
         return rays, batch.rgb
 
     rows["batch draw"] = timed(batch_draw, data, state, repeats=repeats)
@@ -248,7 +248,7 @@ def run(args: argparse.Namespace) -> None:
     config = mx.load_config(args.config, args.overrides)
     dataset = load_dataset(config.data)
     rows = step_rows(config, dataset, args.repeats)
-    rows.update(field_rows(config, mx.init_train_state(config, dataset).model, args.repeats))
+    rows.update(field_rows(config, mx.training.init_train_state(config, dataset).model, args.repeats))
     width = args.narrow_width
     widths = (
         [f"grid.decoder_width={width}", f"grid.view_width={width}"]
@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> None:
     )
     narrow = mx.load_config(args.config, [*args.overrides, *widths])
     rows[f"step, width-{width} field"] = step_rows(narrow, dataset, args.repeats, loss=False)["step"]
-    narrow_model = mx.init_train_state(narrow, dataset).model
+    narrow_model = mx.training.init_train_state(narrow, dataset).model
     rows[f"field forward + backward, width {width}"] = field_rows(narrow, narrow_model, args.repeats)[
         "field forward + backward"
     ]
@@ -271,7 +271,7 @@ def run(args: argparse.Namespace) -> None:
     m = config.model
     if m.field == "grid":
         g = config.grid
-        lookup = mx.init_train_state(config, dataset).model.field.lookup
+        lookup = mx.training.init_train_state(config, dataset).model.field.lookup
         field_text = (
             f"grid {g.encoding} {g.levels} levels {g.min_resolution}-{g.max_resolution} x {g.features}, "
             f"decoder {g.decoder_width}/{g.view_width}, lookup {lookup}"

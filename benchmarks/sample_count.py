@@ -85,7 +85,7 @@ class Frame:
 
 
 def render_frame(
-    model: mx.MixNeRF, views: Views, dataset: Dataset, chunk: int, skipping: mx.Skipping | None = None
+    model: mx.MixNeRF, views: Views, dataset: Dataset, chunk: int, skipping: mx.inference.Skipping | None = None
 ) -> Frame:
     """Renders the single view in `views`: the one place where this benchmark renders.
 
@@ -108,7 +108,7 @@ def render_frame(
 
 
 def benchmark_renders(
-    model: mx.MixNeRF, dataset: Dataset, chunk: int, skipping: mx.Skipping | None = None
+    model: mx.MixNeRF, dataset: Dataset, chunk: int, skipping: mx.inference.Skipping | None = None
 ) -> dict[str, Any]:
     """Times `render_frame` on every test view after a warm-up, and scores the renders.
 
@@ -133,7 +133,7 @@ def benchmark_renders(
         per_view.append(
             {
                 "view": int(one.ids[0]),
-                **mx.image_metrics(frame.rgb, one.images[0], mask=mask, with_lpips=with_lpips),
+                **mx.inference.image_metrics(frame.rgb, one.images[0], mask=mask, with_lpips=with_lpips),
             }
         )
     median_s = statistics.median(seconds)
@@ -223,7 +223,7 @@ def run_one(args, scene, variant, samples: int, cache: DatasetCache) -> dict[str
                     f"[{scene.name} {variant.name} {samples}+{samples}] step {step}: {train_s:.1f} s",
                     flush=True,
                 )
-    except mx.TrainingDiverged as error:
+    except mx.training.TrainingDiverged as error:
         status = f"diverged: {error}"
     chunk = args.chunk or config.train.render_chunk
     renders = benchmark_renders(run.model, dataset, chunk)

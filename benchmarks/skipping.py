@@ -14,7 +14,7 @@ printed beside it.
 The run is read with `mx.runs.restore_run`, and the occupancy grid rebuilt from the checkpoint by
 `mx.runs.grid_for_rendering` (every cell evaluated once); its cost is reported as `grid_seconds`.
 The `--thresholds` rows use each threshold as given; the `--calibrate` rows (one per
-tolerance) let `mixnerf_eqx.choose_threshold` choose it on `--calibrate-rays` training
+tolerance) let `mixnerf_eqx.inference.choose_threshold` choose it on `--calibrate-rays` training
 pixels, starting from the smallest of `--thresholds`, as `fit` and `python -m mixnerf_eqx.eval`
 do with `occupancy.choose_threshold` on; their `grid_seconds` include the calibration. Each setting
 renders the selected views twice and times the second pass, so that compiling the buffer sizes
@@ -67,7 +67,7 @@ def parse_args(argv=None):
 
 def _render(model, views, dataset, chunk, skipping):
     """Renders every view once; returns the images, seconds per frame and the counts."""
-    counts = mx.RenderCounts()
+    counts = mx.inference.RenderCounts()
     rgb = np.empty((views.num_views, views.height, views.width, 3), np.float32)
     seconds = []
     for index in range(views.num_views):
@@ -127,7 +127,7 @@ def main(argv=None):
             grid_seconds = time.perf_counter() - started
             threshold_used = grid_threshold(grid)
             for stop in args.stops:
-                skipping = mx.Skipping(grid=grid, stop_transmittance=stop, segments=args.segments)
+                skipping = mx.inference.Skipping(grid=grid, stop_transmittance=stop, segments=args.segments)
                 mx.render_views(
                     model, views.select([0]), dataset.near, dataset.far, args.chunk, skipping=skipping
                 )
@@ -184,7 +184,7 @@ def main(argv=None):
             f"(PSNR {best_same['psnr_change']:+.3f} dB)"
         )
     print(verdict)
-    empty = mx.make_occupancy_grid(occupancy, dataset)
+    empty = mx.training.make_occupancy_grid(occupancy, dataset)
     result = {
         "run_dir": str(args.run_dir),
         "scene": dataset.name,

@@ -48,18 +48,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     overrides = [*args.overrides, "occupancy.enabled=true", "occupancy.train_skipping=true"]
     config = mx.load_config(args.config, overrides)
     dataset = load_dataset(config.data)
-    state = mx.init_train_state(config, dataset)
+    state = mx.training.init_train_state(config, dataset)
     # Every cell evaluated and far above the threshold: an update keeps it so, and sets the
     # cells the skipping step reads.
     state = eqx.tree_at(lambda s: s.grid.density, state, jnp.full_like(state.grid.density, 1e6))
-    state = mx.update_grid(state, config.occupancy)
+    state = mx.training.update_grid(state, config.occupancy)
     assert state.cells is not None
-    data = mx.training_rays(dataset, config.loss)
-    batch = eqx.filter_jit(mx.draw_batch)(data, state, config.train.batch_size)
+    data = mx.training.training_rays(dataset, config.loss)
+    batch = eqx.filter_jit(mx.training.draw_batch)(data, state, config.train.batch_size)
     dense_config = dataclasses.replace(config, occupancy=dataclasses.replace(config.occupancy, train_skipping=False))
-    rows = [{"share": 1.0, "mode": "dense", **timed(mx.make_train_step(dense_config), dataclasses.replace(state, cells=None), batch, args.repeats)}]
+    rows = [{"share": 1.0, "mode": "dense", **timed(mx.training.make_train_step(dense_config), dataclasses.replace(state, cells=None), batch, args.repeats)}]
     for share in args.shares:
-        step = mx.make_train_step(config, budget=(share, share))
+        step = mx.training.make_train_step(config, budget=(share, share))
         rows.append({"share": share, "mode": "skipping", **timed(step, state, batch, args.repeats)})
         print(f"share {share:.3f}: {rows[-1]['median_s'] * 1000:.1f} ms", flush=True)
     dense = rows[0]["median_s"]

@@ -64,7 +64,7 @@ def time_bare_mlp(config: mx.Config, dataset: Dataset, repeats: int) -> dict[str
     of every output as the loss, and nothing else: no sampling, compositing, mixture or
     optimiser. With `model.remat` the activations are recomputed as in the step.
     """
-    model = mx.init_train_state(config, dataset).model
+    model = mx.training.init_train_state(config, dataset).model
     means, covs, viewdirs, _ = harness.field_points(config, jax.random.key(2))
     started = time.perf_counter()
     forward_backward = eqx.filter_jit(eqx.filter_grad(harness.summed_field)).lower(

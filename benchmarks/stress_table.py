@@ -134,12 +134,12 @@ def nll_scale(location, beta, target) -> float:
 def case_blend(dtype: str):
     rng = np.random.default_rng(0)
     worst, values_ok, grads_ok = 0.0, True, True
-    fn = jax.jit(lambda d, t: mx.blend_weights(d, t, jnp.ones((), d.dtype)))
-    grad = jax.jit(jax.grad(lambda d, t: mx.expected_depth(fn(d, t), t).astype(jnp.float32), argnums=(0, 1)))
+    fn = jax.jit(lambda d, t: mx.nn.blend_weights(d, t, jnp.ones((), d.dtype)))
+    grad = jax.jit(jax.grad(lambda d, t: mx.nn.expected_depth(fn(d, t), t).astype(jnp.float32), argnums=(0, 1)))
     for _ in range(NUM_DRAWS):
         (t, d), (t_r, d_r) = cast(dtype, *extreme_ray(rng, 16))
         weights = fn(d, t)
-        values_ok &= finite(weights) and finite(mx.expected_depth(weights, t))
+        values_ok &= finite(weights) and finite(mx.nn.expected_depth(weights, t))
         grads_ok &= finite(grad(d, t))
         error = np.abs(np.asarray(weights, np.float64) - reference_blend_weights(d_r, t_r, 1.0))
         worst = max(worst, float(np.max(error)))
@@ -151,21 +151,21 @@ def case_tiny_opacity():
     worst, values_ok, grads_ok = 0.0, True, True
     for density_value in (1e-30, 1e-20, 1e-12):
         d = jnp.full(8, density_value) * jnp.linspace(1.0, 2.0, 8)
-        depth = mx.expected_depth(mx.blend_weights(d, t, jnp.asarray(1.0)), t)
+        depth = mx.nn.expected_depth(mx.nn.blend_weights(d, t, jnp.asarray(1.0)), t)
         # At this opacity w_i = sigma_i delta_i: the reference depth is closed form.
         weights = np.asarray(d, np.float64) * np.diff(np.asarray(t, np.float64))
         mids = 0.5 * (np.asarray(t[1:], np.float64) + np.asarray(t[:-1], np.float64))
         worst = max(worst, abs(float(depth) - (weights * mids).sum() / weights.sum()))
         values_ok &= finite(depth)
         grads_ok &= finite(
-            jax.grad(lambda x: mx.expected_depth(mx.blend_weights(x, t, jnp.asarray(1.0)), t))(d)
+            jax.grad(lambda x: mx.nn.expected_depth(mx.nn.blend_weights(x, t, jnp.asarray(1.0)), t))(d)
         )
     return worst, values_ok, grads_ok
 
 
-def case_nll(dtype: str, kind: str, mixture: mx.LaplaceMixture | None = None):
+def case_nll(dtype: str, kind: str, mixture: mx.nn.LaplaceMixture | None = None):
     rng = np.random.default_rng(1)
-    mixture = mixture or mx.LaplaceMixture()
+    mixture = mixture or mx.nn.LaplaceMixture()
     worst, values_ok, grads_ok = 0.0, True, True
     if kind == "colour":
         nll = mixture.colour_nll
@@ -173,7 +173,7 @@ def case_nll(dtype: str, kind: str, mixture: mx.LaplaceMixture | None = None):
         nll = lambda w, depth, b, target: mixture.depth_nll(w, depth, b, target[0])
     else:
         nll = lambda depth, rgb, b, target, d, t: mixture.colour_nll(
-            mx.blend_weights(d, t, depth), rgb, b, target
+            mx.nn.blend_weights(d, t, depth), rgb, b, target
         )
     value_fn = jax.jit(nll)
     grad_fn = jax.jit(jax.grad(lambda *a: nll(*a).astype(jnp.float32), argnums=(0, 1, 2)))
@@ -208,7 +208,7 @@ def case_nll(dtype: str, kind: str, mixture: mx.LaplaceMixture | None = None):
 
 def case_linear_overflow():
     args = (jnp.asarray([0.5, 0.5]), jnp.full((2, 3), 0.5), jnp.full((2, 3), 1e-14), jnp.full(3, 0.5))
-    mixture = mx.LaplaceMixture(evaluation="linear")
+    mixture = mx.nn.LaplaceMixture(evaluation="linear")
     value = mixture.colour_nll(*args)
     reference = -np.log(1 / (1 + 1e-10) * (1 / 2e-14) ** 3 + 1e-12)
     return (
@@ -226,7 +226,7 @@ def case_linear_saturation(evaluation: str):
         np.full(3, 0.1),
     )
     args = tuple(jnp.asarray(a, jnp.float32) for a in (weights, rgb, beta, target))
-    mixture = mx.LaplaceMixture(evaluation=evaluation, likelihood_floor=None)
+    mixture = mx.nn.LaplaceMixture(evaluation=evaluation, likelihood_floor=None)
     value = mixture.colour_nll(*args)
     reference = reference_colour_nll(weights, rgb, beta, target, floor=None)
     return (
@@ -239,7 +239,7 @@ def case_linear_saturation(evaluation: str):
 def case_resampling():
     rng = np.random.default_rng(2)
     worst, values_ok, grads_ok = 0.0, True, True
-    draw = jax.jit(lambda b, w: mx.sample_piecewise_constant(b, mx.blur_weights(w, 0.01), 33, key=None))
+    draw = jax.jit(lambda b, w: mx.nn.sample_piecewise_constant(b, mx.nn.blur_weights(w, 0.01), 33, key=None))
     grad = jax.jit(jax.grad(lambda b, w: jnp.sum(draw(b, w)), argnums=(0, 1)))
     for _ in range(NUM_DRAWS):
         widths = rng.choice([0.0, 0.3, 10.0], 16)
@@ -270,13 +270,13 @@ def case_encoding(dtype: str, integrated: bool):
     for _ in range(NUM_DRAWS):
         (means, covs), (means_r, covs_r) = cast(dtype, rng.uniform(-1, 1, 3), 10.0 ** rng.uniform(-30, 30, 3))
         if integrated:
-            value = mx.integrated_positional_encoding(means, covs, 0, max_deg)
+            value = mx.nn.integrated_positional_encoding(means, covs, 0, max_deg)
             reference = reference_encoding(means_r, max_deg, covs_r, identity=False)
-            fn = lambda m, c: jnp.sum(mx.integrated_positional_encoding(m, c, 0, max_deg)).astype(jnp.float32)
+            fn = lambda m, c: jnp.sum(mx.nn.integrated_positional_encoding(m, c, 0, max_deg)).astype(jnp.float32)
         else:
-            value = mx.positional_encoding(means, 0, max_deg)
+            value = mx.nn.positional_encoding(means, 0, max_deg)
             reference = reference_encoding(means_r, max_deg)
-            fn = lambda m, c: jnp.sum(mx.positional_encoding(m, 0, max_deg)).astype(jnp.float32)
+            fn = lambda m, c: jnp.sum(mx.nn.positional_encoding(m, 0, max_deg)).astype(jnp.float32)
         values_ok &= finite(value)
         grads_ok &= finite(jax.grad(fn, argnums=(0, 1))(means, covs))
         worst = max(
@@ -290,11 +290,11 @@ def case_frustum():
     radius = jnp.asarray([0.01])
     for t0, t1 in [(0.0, 0.0), (2.0, 2.0), (2.0, 2.5), (0.0, 1e10), (2.0, 1e10), (1e3, 1e3 + 1e-2)]:
         t0_j, t1_j = jnp.asarray([t0], jnp.float32), jnp.asarray([t1], jnp.float32)
-        moments = mx.conical_frustum_moments(t0_j, t1_j, radius)
+        moments = mx.nn.conical_frustum_moments(t0_j, t1_j, radius)
         values_ok &= finite(moments)
         grads_ok &= finite(
             jax.grad(
-                lambda a, b: sum(jnp.sum(m) for m in mx.conical_frustum_moments(a, b, radius)), argnums=(0, 1)
+                lambda a, b: sum(jnp.sum(m) for m in mx.nn.conical_frustum_moments(a, b, radius)), argnums=(0, 1)
             )(t0_j, t1_j)
         )
         if t1 > 0:
@@ -315,7 +315,7 @@ CASES = [
     ("regenerated colour NLL, f32 (zero predicted depths)", lambda: case_nll("float32", "regenerated")),
     (
         "exact colour NLL (no floor), log space, f32",
-        lambda: case_nll("float32", "colour", mx.LaplaceMixture(likelihood_floor=None)),
+        lambda: case_nll("float32", "colour", mx.nn.LaplaceMixture(likelihood_floor=None)),
     ),
     ("released linear arithmetic (comparison only), beta 1e-14, r = 0: overflow", case_linear_overflow),
     (

@@ -7,13 +7,13 @@ imported and switched with `mx.set_typecheck`, which every checked call reads wh
 runs. Each setting runs in a fresh Python process (`--one on|off`), so that neither
 inherits the other's caches; each process
 
-- sets the switch, calls a public annotated function wrongly (`mx.blend_weights` with one
+- sets the switch, calls a public annotated function wrongly (`mx.nn.blend_weights` with one
   density and five interval edges; it needs two) and records what happens: with the
   checks on it must raise jaxtyping's `TypeCheckError`, with them off it returns a
   wrongly shaped result; then calls it again with the switch flipped, which must do the
   opposite;
-- times the setup (scene, ray table, `mx.init_train_state`);
-- times the first batch draw and step of `mx.make_train_step` (trace, lower, compile and
+- times the setup (scene, ray table, `mx.training.init_train_state`);
+- times the first batch draw and step of `mx.training.make_train_step` (trace, lower, compile and
   one run: the checks act in the trace alone), split into its phases by JAX's own
   monitoring events, then `--steps` further steps one by one, each waited for, and
   reports their median: the compiled step;
@@ -119,7 +119,7 @@ def measure_typecheck(setting: str, config_path: str, overrides: list[str], step
     # One density but five edges: the annotations tie the edges to `num_samples+1` = 2.
     # Unchecked, the arithmetic broadcasts and returns four weights where one is due.
     def wrong_call():
-        return mx.blend_weights(jnp.ones((1,)), jnp.linspace(2.0, 6.0, 5), jnp.asarray(1.0))
+        return mx.nn.blend_weights(jnp.ones((1,)), jnp.linspace(2.0, 6.0, 5), jnp.asarray(1.0))
 
     probe = probe_call(wrong_call)
     # The switch acts on the next call: flipped, the same call must do the opposite.
@@ -130,8 +130,8 @@ def measure_typecheck(setting: str, config_path: str, overrides: list[str], step
     batch_size = config.train.batch_size
     started = time.perf_counter()
     dataset = load_dataset(config.data)
-    data = mx.training_rays(dataset)
-    state = mx.init_train_state(config, dataset)
+    data = mx.training.training_rays(dataset)
+    state = mx.training.init_train_state(config, dataset)
     jax.block_until_ready((data, state))
     setup_s = time.perf_counter() - started
 
@@ -142,7 +142,7 @@ def measure_typecheck(setting: str, config_path: str, overrides: list[str], step
         lambda event, seconds, **_: events.append((event, seconds))
     )
     initial = state
-    step_fn, draw = mx.make_train_step(config), eqx.filter_jit(mx.draw_batch)
+    step_fn, draw = mx.training.make_train_step(config), eqx.filter_jit(mx.training.draw_batch)
     # The first step: the batch draw and the step, each traced, lowered, compiled and run.
     events.clear()
     started = time.perf_counter()
@@ -163,7 +163,7 @@ def measure_typecheck(setting: str, config_path: str, overrides: list[str], step
     retrace_times = []
     for _ in range(RETRACES):
         events.clear()
-        lowered = mx.make_train_step(config).lower(initial, batch)
+        lowered = mx.training.make_train_step(config).lower(initial, batch)
         retrace_times.append(compile_phases(events)["trace_s"])
     retrace_s = None if None in retrace_times else statistics.median(retrace_times)
     stablehlo = lowered.as_text()
@@ -172,10 +172,10 @@ def measure_typecheck(setting: str, config_path: str, overrides: list[str], step
     # `loss_fn`, whose `target_rgb` is annotated `Float[...]`. Checked, tracing stops there;
     # unchecked, the integers are promoted and the step traces and lowers as if all were well.
     uint8_batch = eqx.tree_at(lambda b: b.rgb, batch, (255 * batch.rgb).astype(jnp.uint8))
-    probe_step = probe_call(lambda: mx.make_train_step(config).lower(initial, uint8_batch))
+    probe_step = probe_call(lambda: mx.training.make_train_step(config).lower(initial, uint8_batch))
 
     return {
-        "typecheck_enabled": mx.typecheck_enabled(),
+        "typecheck_enabled": mx.runtime.typecheck_enabled(),
         "wrong_shape_call": probe,
         "wrong_shape_call_switch_flipped": probe_flipped,
         "uint8_colours_step_lowering": probe_step,

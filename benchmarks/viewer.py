@@ -38,7 +38,7 @@ MODES = ("colour", "depth", "colour spread")
 def frame_times(run_dir: Path, repeats: int) -> list[dict]:
     run = mx.runs.restore_run(run_dir)
     viewer = mx.Viewer(run.model, run.dataset, port=0, max_width=max(WIDTHS))
-    camera = mx.camera_of_view(run.dataset.test, 0)
+    camera = mx.inference.camera_of_view(run.dataset.test, 0)
     rows = []
     try:
         for mode in MODES:

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mixnerf_eqx import RayBundle
+from mixnerf_eqx.nn import RayBundle
 
 
 @pytest.fixture(name="key")

@@ -208,8 +208,8 @@ def test_a_script_can_start_itself_again_with_the_allocator(tmp_path):
     script.write_text(
         "import sys\n"
         "import mixnerf_eqx as mx\n"
-        "mx.preload_allocator()\n"
-        "print(sys.argv[1:], mx.allocator_in_use())\n"
+        "mx.runtime.preload_allocator()\n"
+        "print(sys.argv[1:], mx.runtime.allocator_in_use())\n"
     )
     records = _run_probed(tmp_path, [str(script), "a", "b"], MIXNERF_ALLOCATOR=None, LD_PRELOAD=None)
     assert len(records) == 1 and records[0]["mimalloc"]
@@ -226,7 +226,7 @@ def test_a_program_read_from_standard_input_is_not_started_again(tmp_path):
     if allocator_library() is None:
         pytest.skip("cmeel-mimalloc is not installed")
     env = {k: v for k, v in os.environ.items() if k not in ("LD_PRELOAD", "MIXNERF_ALLOCATOR")}
-    program = "import mixnerf_eqx as mx\nmx.preload_allocator()\nprint('ran', mx.allocator_in_use())\n"
+    program = "import mixnerf_eqx as mx\nmx.runtime.preload_allocator()\nprint('ran', mx.runtime.allocator_in_use())\n"
     shown = subprocess.run(
         [sys.executable, "-"], input=program, env=env, capture_output=True, text=True, check=True, timeout=300
     )

@@ -12,7 +12,7 @@ from mixnerf_eqx import ConfigError, build_model, load_config
 
 # Files are found relative to the repository (and the package), not the working directory.
 REPO = Path(__file__).resolve().parents[1]
-CONFIGS = [mx.config_path(name) for name in mx.config_names()]
+CONFIGS = [mx.config.config_path(name) for name in mx.config.config_names()]
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
 
 
@@ -147,7 +147,7 @@ def test_baseline_has_no_mixture_parts():
     assert model.mixture is None
     assert not model.field.has_mixture_heads
     mixnerf = build_model(load_config(None), key=jax.random.key(0))
-    assert isinstance(mixnerf.mixture, mx.LaplaceMixture)
+    assert isinstance(mixnerf.mixture, mx.nn.LaplaceMixture)
     assert mixnerf.field.has_mixture_heads
 
 
@@ -179,9 +179,9 @@ def test_method_is_chosen_not_inferred():
 
 
 def test_removed_keys_of_older_runs_warn_and_are_ignored():
-    stored = mx.config_from_dict({"train": {"max_steps": 5}})
+    stored = mx.config.config_from_dict({"train": {"max_steps": 5}})
     with pytest.warns(DeprecationWarning, match="typecheck is no longer a setting.*--no-typecheck"):
-        old = mx.config_from_dict({"train": {"max_steps": 5, "typecheck": False}})
+        old = mx.config.config_from_dict({"train": {"max_steps": 5, "typecheck": False}})
     assert old == stored
 
 
@@ -189,17 +189,17 @@ def test_renamed_keys_of_older_runs_warn_and_are_read_as_the_new_key():
     """The occupancy threshold's keys lost the word "calibrate": an old run folder's config or
     an old command line still reads, with a warning that names the new key."""
     with pytest.warns(FutureWarning) as record:
-        old = mx.config_from_dict({"occupancy": {"calibrate": False, "calibrate_rays": 512}})
+        old = mx.config.config_from_dict({"occupancy": {"calibrate": False, "calibrate_rays": 512}})
     assert [str(w.message) for w in record] == [
         "<dict>: occupancy.calibrate is now occupancy.choose_threshold; read as that",
         "<dict>: occupancy.calibrate_rays is now occupancy.threshold_rays; read as that",
     ]
     assert old.occupancy.choose_threshold is False and old.occupancy.threshold_rays == 512
-    assert old == mx.config_from_dict({"occupancy": {"choose_threshold": False, "threshold_rays": 512}})
+    assert old == mx.config.config_from_dict({"occupancy": {"choose_threshold": False, "threshold_rays": 512}})
     with pytest.warns(FutureWarning, match="occupancy.calibrate is now occupancy.choose_threshold"):
         assert load_config(None, ["occupancy.calibrate=false"]).occupancy.choose_threshold is False
     with pytest.raises(ConfigError, match="calibrate_doublings and occupancy.threshold_doublings both given"):
-        mx.config_from_dict({"occupancy": {"calibrate_doublings": 3, "threshold_doublings": 4}})
+        mx.config.config_from_dict({"occupancy": {"calibrate_doublings": 3, "threshold_doublings": 4}})
 
 
 def test_each_field_reads_its_own_section_and_a_key_of_another_field_is_an_error(tmp_path):
@@ -207,7 +207,7 @@ def test_each_field_reads_its_own_section_and_a_key_of_another_field_is_an_error
     in the section of a field the config does not use is an error that names it."""
     grid = load_config("builtin_grid")
     # A config that switches the field starts the section it leaves from its defaults.
-    assert load_config("builtin").mlp.width == 64 and grid.mlp == mx.config_from_dict({}).mlp
+    assert load_config("builtin").mlp.width == 64 and grid.mlp == mx.config.config_from_dict({}).mlp
     assert load_config("builtin", ["model.field=grid"]).mlp == grid.mlp
     with pytest.raises(ConfigError, match=r"mlp.width = 64: \[mlp\] does not apply to model.field = 'grid'"):
         load_config("builtin_grid", ["mlp.width=64"])
@@ -229,7 +229,7 @@ def test_old_model_keys_of_a_field_name_their_new_section():
     """Files, command lines and run folders from before [mlp] still load, with a warning that
     names the new key; an old grid run's MLP keys, which it never read, are dropped."""
     with pytest.warns(FutureWarning, match=r"model\.width is now mlp\.width; read as that"):
-        old = mx.config_from_dict({"model": {"width": 48, "num_coarse_samples": 8}})
+        old = mx.config.config_from_dict({"model": {"width": 48, "num_coarse_samples": 8}})
     assert (old.mlp.width, old.model.num_coarse_samples) == (48, 8)
     with pytest.warns(FutureWarning, match="model.matmul_dtype is now mlp.matmul_dtype"):
         assert load_config(None, ['model.matmul_dtype="bfloat16"']).mlp.matmul_dtype == "bfloat16"
@@ -242,13 +242,13 @@ def test_old_model_keys_of_a_field_name_their_new_section():
     # Written by a run: read silently, and the unused field's section ignored, whatever older
     # versions kept there (an old grid run's MLP keys; an old MLP run's grid keys).
     old_grid_run = {"model": {"field": "grid", "width": 64, "depth": 4}, "grid": {"levels": 3}}
-    restored = mx.config_from_dict(old_grid_run, written_by_a_run=True)
-    assert restored.mlp == mx.config_from_dict({}).mlp and restored.grid.levels == 3
+    restored = mx.config.config_from_dict(old_grid_run, written_by_a_run=True)
+    assert restored.mlp == mx.config.config_from_dict({}).mlp and restored.grid.levels == 3
     old_mlp_run = {"model": {"field": "mlp", "width": 32}, "grid": {"levels": 3, "tv_weight": 0.5}}
-    restored = mx.config_from_dict(old_mlp_run, written_by_a_run=True)
-    assert restored.mlp.width == 32 and restored.grid == mx.config_from_dict({}).grid
+    restored = mx.config.config_from_dict(old_mlp_run, written_by_a_run=True)
+    assert restored.mlp.width == 32 and restored.grid == mx.config.config_from_dict({}).grid
     with pytest.raises(ConfigError, match="model.depth and mlp.depth both given"):
-        mx.config_from_dict({"model": {"depth": 3}, "mlp": {"depth": 4}})
+        mx.config.config_from_dict({"model": {"depth": 3}, "mlp": {"depth": 4}})
 
 
 def test_moved_public_names_say_where_they_went():
@@ -256,8 +256,8 @@ def test_moved_public_names_say_where_they_went():
     for old, new in [
         ("restore_run", "mixnerf_eqx.runs.restore_run"),
         ("save_checkpoint", "mixnerf_eqx.runs.save_checkpoint"),
-        ("calibrate_threshold", "mixnerf_eqx.choose_threshold"),
-        ("calibration_rays", "mixnerf_eqx.threshold_rays"),
+        ("calibrate_threshold", "mixnerf_eqx.inference.choose_threshold"),
+        ("calibration_rays", "mixnerf_eqx.inference.threshold_rays"),
     ]:
         with pytest.raises(AttributeError, match=f"mixnerf_eqx.{old} has moved: use {new}"):
             getattr(mx, old)
@@ -265,7 +265,7 @@ def test_moved_public_names_say_where_they_went():
         assert callable(getattr(importlib.import_module(module), name))
     with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
         mx.no_such_name  # noqa: B018
-    assert not hasattr(mx, "hold_folder") and mx.runs.FolderBusyError is mx.FolderBusyError
+    assert not hasattr(mx, "hold_folder") and mx.runs.FolderBusyError is mx.runs.FolderBusyError
 
 
 def test_schema_imports_no_model():

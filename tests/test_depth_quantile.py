@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mixnerf_eqx import depth_quantile
+from mixnerf_eqx.nn import depth_quantile
 
 
 def _numpy_quantile(weights, edges, q):

@@ -16,7 +16,7 @@ from helpers import (
     ref_positional_encoding,
 )
 
-from mixnerf_eqx import frustum_gaussians, integrated_positional_encoding, positional_encoding
+from mixnerf_eqx.nn import frustum_gaussians, integrated_positional_encoding, positional_encoding
 from mixnerf_eqx._nn.encoding import conical_frustum_moments, cylinder_moments
 
 # --- positional encoding ----------------------------------------------------------------

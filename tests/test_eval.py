@@ -9,7 +9,8 @@ import pytest
 from PIL import Image
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import evaluate, fit, render_rays, render_views
+from mixnerf_eqx import evaluate, fit, render_views
+from mixnerf_eqx.inference import render_rays
 from mixnerf_eqx._inference.evaluation import join_chunks, map_ray_chunks
 from mixnerf_eqx.cli.eval import main as eval_main
 from mixnerf_eqx.data import rays_for_views
@@ -172,7 +173,7 @@ def test_eval_of_a_folder_that_is_no_run_is_one_clear_error(argument, tmp_path):
 
 
 def test_masked_scores_follow_the_dtu_protocol():
-    from mixnerf_eqx import image_metrics
+    from mixnerf_eqx.inference import image_metrics
     from mixnerf_eqx.metrics import ssim
 
     rng = np.random.default_rng(0)
@@ -199,7 +200,7 @@ def test_the_chunk_map_sees_whole_chunks_and_returns_every_ray_once(count, chunk
     of rays (the last chunk padded with the last ray), `extra` rows stay with their rays, and
     `join_chunks` gives back each real ray once, in order."""
     index = np.arange(count, dtype=np.float32)
-    rays = mx.RayBundle(
+    rays = mx.nn.RayBundle(
         origins=jnp.stack([jnp.asarray(index)] * 3, axis=-1).reshape(count, 3),
         directions=jnp.tile(jnp.asarray([0.0, 0.0, -1.0]), (count, 1)),
         viewdirs=jnp.tile(jnp.asarray([0.0, 0.0, -1.0]), (count, 1)),

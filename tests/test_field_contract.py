@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import AbstractField, FieldOutputs, build_field
+from mixnerf_eqx.nn import AbstractField, FieldOutputs, build_field
 from mixnerf_eqx._nn.field.base import vmap_field
 from mixnerf_eqx._nn.field.heads import MixtureHeads
 
@@ -214,9 +214,9 @@ def test_every_field_has_the_one_set_of_heads(field, request):
 def test_a_field_without_a_builder_is_refused():
     """`build_field` is a table of constructors: a field name without one is an error."""
     config = mx.load_config("builtin", SMALL_MLP)
-    removed = mx.FIELD_BUILDERS.pop("mlp")
+    removed = mx.nn.FIELD_BUILDERS.pop("mlp")
     try:
         with pytest.raises(ValueError, match="model.field 'mlp' is none of"):
             build_field(config, key=jax.random.key(0))
     finally:
-        mx.FIELD_BUILDERS["mlp"] = removed
+        mx.nn.FIELD_BUILDERS["mlp"] = removed

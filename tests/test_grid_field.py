@@ -11,7 +11,9 @@ import pytest
 from helpers import TINY_SHARED_OVERRIDES
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import ConfigError, GridField, HashEncoding, Skipping, TriPlaneEncoding, render_rays
+from mixnerf_eqx import ConfigError
+from mixnerf_eqx.inference import Skipping, render_rays
+from mixnerf_eqx.nn import GridField, HashEncoding, TriPlaneEncoding
 from mixnerf_eqx._config import replace_setting
 from mixnerf_eqx._nn.field.grid import density_activation
 from mixnerf_eqx._train.loss import LossWeights
@@ -139,14 +141,14 @@ def test_level_scale_weights_follow_the_closed_form():
     cells = (0.5, 0.1, 0.01)
     half = jnp.asarray([1.0, 2.0, 0.5])
     cov = jnp.asarray([1e-3, 4e-3, 2.5e-4])  # sigma^2 = 1e-3 on every axis in box units
-    got = np.asarray(mx.level_scale_weights(cov, half, cells))
+    got = np.asarray(mx.nn.level_scale_weights(cov, half, cells))
     from math import erf, sqrt
 
     want = [erf(c / (sqrt(8) * sqrt(1e-3))) for c in cells]
     np.testing.assert_allclose(got, want, rtol=1e-5)
     assert got[0] > got[1] > got[2] > 0
     # A point (no footprint) sees every level at full weight.
-    np.testing.assert_allclose(mx.level_scale_weights(jnp.zeros(3), half, cells), 1.0)
+    np.testing.assert_allclose(mx.nn.level_scale_weights(jnp.zeros(3), half, cells), 1.0)
 
 
 def test_total_variation_of_a_linear_ramp():
@@ -302,7 +304,7 @@ def test_short_grid_run_learns_and_renders_with_skipping(tiny_grid_config, tiny_
     # one, and the restored run is the trained one.
     run = mx.runs.restore_run(result.run_dir)
     assert isinstance(run.model.field, GridField)
-    rays = mx.camera_rays(tiny_scene.test.camtoworlds[:1], tiny_scene.test.focal * 12 / 32, 12, 12, 2.0, 6.0)
+    rays = mx.nn.camera_rays(tiny_scene.test.camtoworlds[:1], tiny_scene.test.focal * 12 / 32, 12, 12, 2.0, 6.0)
     rays = rays.reshape(-1)
     dense = render_rays(run.model, rays, 64)
     sparse = render_rays(run.model, rays, 64, skipping=Skipping(None, 0.0, 3, min_bucket=64))

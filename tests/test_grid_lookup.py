@@ -10,7 +10,7 @@ import pytest
 from helpers import TINY_SHARED_OVERRIDES
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import GridField, HashEncoding, TriPlaneEncoding
+from mixnerf_eqx.nn import GridField, HashEncoding, TriPlaneEncoding
 from mixnerf_eqx._nn.field._lookup import resolve_lookup, weighted_rows
 
 
@@ -213,9 +213,9 @@ def test_the_model_uses_the_fields_batched_evaluation(tiny_scene):
     outputs = {}
     for lookup in ("vmap", "batched"):
         config = mx.load_config("builtin", [*overrides, f'grid.lookup="{lookup}"'])
-        model = mx.init_train_state(config, tiny_scene).model
+        model = mx.training.init_train_state(config, tiny_scene).model
         assert model.field.lookup == lookup
-        rays = mx.training_rays(tiny_scene).rays[0, :16]
+        rays = mx.training.training_rays(tiny_scene).rays[0, :16]
         outputs[lookup] = eqx.filter_jit(lambda m, r: m(r, key=jax.random.key(0)))(model, rays)
     for got, want in zip(
         jax.tree_util.tree_leaves(outputs["batched"]), jax.tree_util.tree_leaves(outputs["vmap"]), strict=True

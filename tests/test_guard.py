@@ -9,14 +9,8 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import (
-    TrainingDiverged,
-    draw_batch,
-    fit,
-    init_train_state,
-    make_train_step,
-    training_rays,
-)
+from mixnerf_eqx import fit
+from mixnerf_eqx.training import TrainingDiverged, draw_batch, init_train_state, make_train_step, training_rays
 
 
 def _poisoned(scene, image_ids):

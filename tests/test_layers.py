@@ -53,10 +53,13 @@ def module_file(parts: list[str]) -> Path | None:
 
 
 def imported_files(path: Path) -> set[Path]:
-    """The package's files that `path` imports (relative or absolute imports)."""
+    """The package's files that `path` imports (relative or absolute imports; for a module with
+    a stub beside it, such as the lazily loading `__init__.py`, the stub's imports too)."""
     found: set[Path | None] = set()
     here = list(path.parent.relative_to(PACKAGE).parts)
-    for node in ast.walk(ast.parse(path.read_text())):
+    stub = path.with_suffix(".pyi")
+    sources = [path.read_text(), *([stub.read_text()] if stub.is_file() else [])]
+    for node in (node for source in sources for node in ast.walk(ast.parse(source))):
         if isinstance(node, ast.ImportFrom) and node.level > 0:
             base = here[: len(here) - (node.level - 1)] + (node.module.split(".") if node.module else [])
         elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "mixnerf_eqx":
@@ -113,9 +116,10 @@ def test_the_check_sees_a_lower_import():
     assert imported_units(PACKAGE / "_nn" / "field" / "base.py", listed) == {"_custom_types.py"}
     loop = imported_units(PACKAGE / "_train" / "loop.py", listed)
     assert {"_train/state.py", "_train/sharding.py", "_train/checkpoint.py", "_util/json_io.py"} <= loop
-    assert {"_train/loop.py", "data/", "_util/allocator.py", "runs.py"} <= imported_units(
+    assert {"_train/loop.py", "data/", "runs.py", "nn.py", "_util/moved.py"} <= imported_units(
         PACKAGE / "__init__.py", listed
     )
+    assert {"_util/allocator.py", "_util/typecheck.py"} <= imported_units(PACKAGE / "runtime.py", listed)
     assert is_group_marker(PACKAGE / "_nn" / "__init__.py")
     assert not is_group_marker(PACKAGE / "_nn" / "field" / "__init__.py")
 

@@ -116,7 +116,7 @@ def _as_outputs(levels):
 def _rays(directions):
     count = directions.shape[0]
     directions = jnp.asarray(as_f32(directions))
-    return mx.RayBundle(
+    return mx.nn.RayBundle(
         origins=jnp.zeros((count, 3)),
         directions=directions,
         viewdirs=directions / jnp.linalg.norm(directions, axis=-1, keepdims=True),
@@ -319,27 +319,27 @@ def test_opacity_entropy_is_zero_at_empty_and_opaque_and_log2_at_half():
 class _LossWithDummy(LossConfig):
     """`[loss]` with the one line a new term adds: its weight."""
 
-    dummy_weight: float = mx.loss_weight(0.0)
+    dummy_weight: float = mx.config.loss_weight(0.0)
 
 
 @pytest.fixture
 def dummy_term():
     """A term registered for one test: the mean squared opacity of the fine level."""
-    term = mx.LossTerm("dummy", lambda inputs: jnp.mean(inputs.outputs.fine.acc**2), weight="dummy_weight")
-    mx.register_loss_term(term)
+    term = mx.training.LossTerm("dummy", lambda inputs: jnp.mean(inputs.outputs.fine.acc**2), weight="dummy_weight")
+    mx.training.register_loss_term(term)
     yield term
-    mx.unregister_loss_term("dummy")
-    assert "dummy" not in mx.loss_term_names()
+    mx.training.unregister_loss_term("dummy")
+    assert "dummy" not in mx.training.loss_term_names()
 
 
 def test_a_registered_term_is_weighted_logged_and_range_checked(mixnerf_model, tiny_config, dummy_term):
-    assert mx.loss_term_names()[-1] == "dummy"
+    assert mx.training.loss_term_names()[-1] == "dummy"
     loss = _LossWithDummy(**dataclasses.asdict(tiny_config.loss))
     # Range-checked: its weight is one of the `[loss]` weights, each at least 0.
     with pytest.raises(mx.ConfigError, match=r"loss\.dummy_weight must be >= 0, got -0\.5"):
         dataclasses.replace(tiny_config, loss=dataclasses.replace(loss, dummy_weight=-0.5))
     with pytest.raises(ValueError, match="already registered"):
-        mx.register_loss_term(dummy_term)
+        mx.training.register_loss_term(dummy_term)
     # A term whose weight its [loss] section does not declare is refused when weighed.
     with pytest.raises(ValueError, match=r"weighted by loss.dummy_weight, which the \[loss\] section does not"):
         LossWeights.from_config(tiny_config.loss, "mixnerf")

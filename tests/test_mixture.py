@@ -15,7 +15,7 @@ from helpers import (
     ref_depth_nll,
 )
 
-from mixnerf_eqx import LaplaceMixture, blend_weights, log_transmittance
+from mixnerf_eqx.nn import LaplaceMixture, blend_weights, log_transmittance
 
 NUM_SAMPLES = 12
 FLOOR_NLL = -np.log(1e-12)  # ~= 27.631, where the released loss saturates

@@ -32,7 +32,7 @@ def test_candidate_poses_that_are_not_rotations_are_named():
 
 
 def test_an_ndc_candidate_facing_away_is_refused(tiny_config, tiny_scene):
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     like = Views(images=np.zeros((1, 8, 8, 3), np.float32), camtoworlds=np.eye(3, 4, dtype=np.float32)[None], focal=8.0, ndc=True)
     away = np.eye(3, 4)
     away[:, :3] = np.diag([-1.0, 1.0, -1.0])  # turned half round: looking along +z
@@ -88,7 +88,7 @@ def test_farthest_first_orders_by_the_nearest_training_centre():
     train = np.stack([at(0, 0, 0), at(10, 0, 0)])
     candidates = np.stack([at(1, 0, 0), at(5, 0, 0), at(0, 3, 0), at(10, 0, 2)])
     # Nearest training centres at distances 1, 5, 3 and 2.
-    assert list(mx.farthest_first(candidates, train)) == [1, 2, 3, 0]
+    assert list(mx.uncertainty.farthest_first(candidates, train)) == [1, 2, 3, 0]
 
 
 def test_the_command_ranks_the_validation_cameras_and_poses_from_a_file(short_run, tmp_path, capsys):

@@ -14,7 +14,8 @@ import pytest
 from jaxtyping import Array, Float
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import ConfigError, Skipping, fit, render_rays
+from mixnerf_eqx import ConfigError, fit
+from mixnerf_eqx.inference import Skipping, render_rays
 from mixnerf_eqx._inference.occupancy import (
     empty_grid,
     frustum_box,
@@ -26,7 +27,7 @@ from mixnerf_eqx._inference.threshold import psnr_drop_bound
 from mixnerf_eqx.metrics import psnr
 
 
-class SphereField(mx.AbstractField):
+class SphereField(mx.nn.AbstractField):
     """Density `inside` in a ball, zero outside; a colour that varies with position."""
 
     centre: Float[Array, "3"]
@@ -44,7 +45,7 @@ class SphereField(mx.AbstractField):
     def __call__(self, mean, cov, viewdir, *, key=None):
         del key
         rgb = 0.5 + 0.4 * jnp.sin(3.0 * mean + viewdir)
-        return mx.FieldOutputs(density=self.density(mean, cov), rgb=rgb, beta=None, ray_depth=None)
+        return mx.nn.FieldOutputs(density=self.density(mean, cov), rgb=rgb, beta=None, ray_depth=None)
 
 
 def _sphere(inside=20.0, radius=0.6):
@@ -54,9 +55,9 @@ def _sphere(inside=20.0, radius=0.6):
 def _sphere_model(field, samples=64):
     return mx.MixNeRF(
         field=field,
-        coarse_sampler=mx.StratifiedSampler(samples),
-        fine_sampler=mx.HierarchicalSampler(samples),
-        renderer=mx.VolumeRenderer((1.0, 1.0, 1.0)),
+        coarse_sampler=mx.nn.StratifiedSampler(samples),
+        fine_sampler=mx.nn.HierarchicalSampler(samples),
+        renderer=mx.nn.VolumeRenderer((1.0, 1.0, 1.0)),
         mixture=None,
     )
 
@@ -64,7 +65,7 @@ def _sphere_model(field, samples=64):
 def _camera_rays(size=32, distance=4.0, zoom=1.2):
     """A camera on the +z axis looking at the origin, near 2, far 6 (focal `zoom * size`)."""
     pose = np.array([[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, distance]]], np.float32)
-    return mx.camera_rays(pose, zoom * size, size, size, 2.0, 6.0).reshape(-1)
+    return mx.nn.camera_rays(pose, zoom * size, size, size, 2.0, 6.0).reshape(-1)
 
 
 def _cell_centres(grid):
@@ -96,7 +97,7 @@ def test_dilation_marks_the_neighbours_of_occupied_cells():
     density = np.zeros((9, 9, 9), np.float32)
     density[4, 4, 4] = 1.0
     density[0, 8, 0] = 1.0
-    grid = mx.OccupancyGrid(
+    grid = mx.inference.OccupancyGrid(
         density=jnp.asarray(density),
         box_min=jnp.zeros(3),
         box_max=jnp.ones(3),
@@ -115,7 +116,7 @@ def test_lookup_matches_a_numpy_reference(outside_occupied):
     rng = np.random.default_rng(0)
     mask = rng.uniform(size=(7, 7, 7)) < 0.4
     box_min, box_max = np.array([-1.0, 0.0, 2.0]), np.array([1.0, 3.0, 2.5])
-    grid = mx.OccupancyGrid(
+    grid = mx.inference.OccupancyGrid(
         density=jnp.asarray(mask.astype(np.float32)),
         box_min=jnp.asarray(box_min, jnp.float32),
         box_max=jnp.asarray(box_max, jnp.float32),
@@ -181,13 +182,13 @@ def test_every_evaluated_cell_decays_at_each_update_visited_or_not():
 def test_frustum_box_holds_every_sample_and_ndc_depth_spans_minus_one_to_one():
     rng = np.random.default_rng(1)
     poses = np.concatenate([np.eye(3)[None].repeat(3, 0), rng.normal(0, 0.2, (3, 3, 1))], axis=-1)
-    rays = mx.camera_rays(poses.astype(np.float32), 20.0, 16, 24, 2.0, 6.0)
+    rays = mx.nn.camera_rays(poses.astype(np.float32), 20.0, 16, 24, 2.0, 6.0)
     low, high = frustum_box(rays)
     t = np.linspace(2.0, 6.0, 17)
     flat = rays.reshape(-1)
     points = np.asarray(flat.origins)[:, None] + np.asarray(flat.directions)[:, None] * t[:, None]
     assert np.all(points >= low) and np.all(points <= high)
-    ndc = mx.camera_rays(poses.astype(np.float32), 20.0, 16, 24, 0.0, 1.0, ndc=True)
+    ndc = mx.nn.camera_rays(poses.astype(np.float32), 20.0, 16, 24, 0.0, 1.0, ndc=True)
     low, high = frustum_box(ndc)
     np.testing.assert_allclose([low[2], high[2]], [-1.02, 1.02], atol=1e-4)
 
@@ -204,12 +205,12 @@ def test_skipping_nothing_equals_the_dense_render(tiny_config, chunk):
     assert counts.rays == 144 and counts.field_evaluations == counts.dense_evaluations == 144 * 32
 
 
-class TintedRenderer(mx.AbstractRenderer):
+class TintedRenderer(mx.nn.AbstractRenderer):
     """A different renderer: the volume renderer over a grey background, colours tinted.
 
     Swapped into a model, both the dense and the skipping render must follow it."""
 
-    inner: mx.VolumeRenderer
+    inner: mx.nn.VolumeRenderer
     tint: Float[Array, "3"]
 
     def __call__(self, outputs, t_edges, ray):
@@ -220,9 +221,9 @@ class TintedRenderer(mx.AbstractRenderer):
 def test_swapped_renderer_and_sampler_are_followed_by_the_skipping_render(tiny_config):
     model = mx.build_model(tiny_config, key=jax.random.key(0))
     rays = _camera_rays(size=10)
-    tinted = TintedRenderer(mx.VolumeRenderer((0.5, 0.5, 0.5)), jnp.array([1.0, 0.5, 0.25]))
+    tinted = TintedRenderer(mx.nn.VolumeRenderer((0.5, 0.5, 0.5)), jnp.array([1.0, 0.5, 0.25]))
     swapped = eqx.tree_at(lambda m: m.renderer, model, tinted)
-    swapped = eqx.tree_at(lambda m: m.coarse_sampler, swapped, mx.StratifiedSampler(24, "cone", lindisp=True))
+    swapped = eqx.tree_at(lambda m: m.coarse_sampler, swapped, mx.nn.StratifiedSampler(24, "cone", lindisp=True))
     nothing_skipped = Skipping(None, 0.0, 3, min_bucket=64)
     dense = render_rays(swapped, rays, 100)
     sparse = render_rays(swapped, rays, 100, skipping=nothing_skipped)
@@ -374,7 +375,7 @@ def _calibrate_foggy_sphere(tolerance_db):
     grid = empty_grid((-1.5,) * 3, (1.5,) * 3, resolution=32, threshold=1e-3, outside_occupied=False)
     grid = refresh_occupancy(grid, foggy, key=jax.random.key(0))
     skipping = Skipping(grid, 1e-4, 4)
-    chosen, choice = mx.choose_threshold(
+    chosen, choice = mx.inference.choose_threshold(
         model, grid, skipping, rays, target, tolerance_db=tolerance_db, doublings=16, chunk=576
     )
     dense = render_rays(model, rays, 576).rgb
@@ -407,7 +408,7 @@ def test_calibration_skips_the_fog_but_not_the_sphere_for_a_loose_tolerance():
 
 
 def test_calibration_rays_are_distinct_training_pixels(tiny_scene):
-    rays, colours = mx.threshold_rays(tiny_scene, 300, key=jax.random.key(3))
+    rays, colours = mx.inference.threshold_rays(tiny_scene, 300, key=jax.random.key(3))
     views = tiny_scene.train
     assert rays.batch_shape == (300,) and colours.shape == (300, 3)
     all_rays = mx.data.rays_for_views(views, tiny_scene.near, tiny_scene.far).reshape(-1)
@@ -417,4 +418,4 @@ def test_calibration_rays_are_distinct_training_pixels(tiny_scene):
     assert len(set(index)) == 300
     np.testing.assert_array_equal(colours, np.asarray(views.images, np.float32).reshape(-1, 3)[index])
     with pytest.raises(ValueError, match="num_rays"):
-        mx.threshold_rays(tiny_scene, 0, key=jax.random.key(3))
+        mx.inference.threshold_rays(tiny_scene, 0, key=jax.random.key(3))

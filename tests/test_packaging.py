@@ -19,7 +19,7 @@ from pathlib import Path
 import mixnerf_eqx as mx
 here = Path(mx.__file__).resolve().parent
 assert here.is_relative_to(Path(sys.prefix).resolve()), here  # the new environment's copy
-names = mx.config_names()
+names = mx.config.config_names()
 assert "builtin_grid" in names and "llff3" in names, names
 for name in names:
     config = mx.load_config(name)  # every packaged config, `extends` included

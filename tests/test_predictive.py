@@ -33,7 +33,7 @@ def random_mixtures(rng, num_rays, num_components, *, low=0.01, high=0.5, concen
 
 
 def as_mixture(coefficients, location, scale):
-    return mx.ColourMixture(
+    return mx.uncertainty.ColourMixture(
         jnp.asarray(coefficients, jnp.float32),
         jnp.asarray(location, jnp.float32),
         jnp.asarray(scale, jnp.float32),
@@ -183,7 +183,7 @@ def test_quantile_gradient_is_the_implicit_function_derivative():
     level = 0.3
     gradient = jax.jit(
         jax.grad(
-            lambda loc: mx.ColourMixture(
+            lambda loc: mx.uncertainty.ColourMixture(
                 jnp.asarray(coefficients, jnp.float32)[None],
                 jnp.broadcast_to(loc[None, :, None], (1, 4, 3)),
                 jnp.broadcast_to(jnp.asarray(scale, jnp.float32)[None, :, None], (1, 4, 3)),
@@ -250,7 +250,7 @@ def test_termination_distance_matches_the_piecewise_linear_inverse():
     rng = np.random.default_rng(6)
     edges = np.sort(rng.uniform(2.0, 6.0, (5, 17)), axis=-1)
     weights = rng.uniform(0, 1, (5, 16)) * (rng.uniform(0, 1, (5, 16)) < 0.6)
-    depth = mx.TerminationDistribution(jnp.asarray(weights, jnp.float32), jnp.asarray(edges, jnp.float32))
+    depth = mx.uncertainty.TerminationDistribution(jnp.asarray(weights, jnp.float32), jnp.asarray(edges, jnp.float32))
     levels = (0.05, 0.1, 0.5, 0.9, 0.95)
     batched, single = jax.jit(lambda d: (d.quantiles(levels), [d.quantile(level) for level in (0.1, 0.95)]))(
         depth
@@ -277,7 +277,7 @@ def test_termination_distance_matches_the_piecewise_linear_inverse():
         assert abs(lower[ray] - np.interp(0.1, cumulative[ray], edges[ray])) < 1e-5
         assert abs(upper[ray] - np.interp(0.9, cumulative[ray], edges[ray])) < 1e-5
     # A ray with no weight puts everything at its far bound.
-    empty = mx.TerminationDistribution(jnp.zeros((1, 16)), jnp.asarray(edges[:1], jnp.float32))
+    empty = mx.uncertainty.TerminationDistribution(jnp.zeros((1, 16)), jnp.asarray(edges[:1], jnp.float32))
     for value in (empty.mean(), empty.median(), *empty.interval(0.9)):
         np.testing.assert_allclose(np.asarray(value), edges[0, -1], rtol=1e-6)
     assert float(empty.std()[0]) == 0.0
@@ -300,19 +300,19 @@ def test_coverage_is_nominal_when_the_truth_is_drawn_from_the_mixture():
     for index, mass in enumerate(MASSES):
         nominal = bounds[index], bounds[index + len(MASSES)]
         narrow = narrow_bounds[index], narrow_bounds[index + len(MASSES)]
-        coverage = mx.interval_coverage(*nominal, truth)
+        coverage = mx.uncertainty.interval_coverage(*nominal, truth)
         assert coverage.shape == (3,)
         tolerance = 4.5 * np.sqrt(mass * (1 - mass) / num_rays)
         assert np.all(np.abs(coverage - mass) < tolerance)
         # Scales halved are caught by the same tolerance: the coverage check can fail.
-        assert np.all(mx.interval_coverage(*narrow, truth) < mass - tolerance)
+        assert np.all(mx.uncertainty.interval_coverage(*narrow, truth) < mass - tolerance)
 
 
 def test_fit_temperature_recovers_a_known_scale_factor():
     rng = np.random.default_rng(8)
     coefficients, location, scale = random_mixtures(rng, 3000, 4)
     truth = draw(rng, coefficients, location, 2.0 * scale, 1)[:, 0]
-    fitted = mx.fit_temperature(as_mixture(coefficients, location, scale), jnp.asarray(truth, jnp.float32))
+    fitted = mx.uncertainty.fit_temperature(as_mixture(coefficients, location, scale), jnp.asarray(truth, jnp.float32))
     assert abs(fitted - 2.0) < 0.1
 
 
@@ -320,7 +320,7 @@ def test_sparsification_against_a_direct_loop():
     rng = np.random.default_rng(9)
     error = rng.exponential(1.0, 500)
     spread = error + rng.normal(0, 0.5, 500)
-    result = mx.sparsification(spread, error, num_fractions=10)
+    result = mx.uncertainty.sparsification(spread, error, num_fractions=10)
     for index, fraction in enumerate(result.fractions):
         kept = int(round(500 * (1 - fraction)))
         by_spread = error[np.argsort(-spread, kind="stable")][500 - kept :].mean() / error.mean()
@@ -328,7 +328,7 @@ def test_sparsification_against_a_direct_loop():
         assert abs(result.by_spread[index] - by_spread) < 1e-12
         assert abs(result.oracle[index] - oracle) < 1e-12
     assert 0 < result.ause < result.random_area
-    assert mx.sparsification(error, error).ause == 0.0
+    assert mx.uncertainty.sparsification(error, error).ause == 0.0
 
 
 # ----------------------------------------------------------------------------- on a model
@@ -345,10 +345,10 @@ def test_predictive_pass_of_a_model_compiles_once(tiny_config, tiny_scene, monke
     once = eqx.filter_jit(eqx.debug.assert_max_traces(_uncertainty._summarise_rays, max_traces=1))
     monkeypatch.setattr(_uncertainty, "_summarise_chunk", once)
     chunk = rays.batch_shape[0] * rays.batch_shape[1] * rays.batch_shape[2]
-    maps = mx.predict_rays(model, rays, chunk, targets=view.images)
-    wider = mx.predict_rays(model, rays, chunk, temperature=2.0, targets=view.images)
+    maps = mx.uncertainty.predict_rays(model, rays, chunk, targets=view.images)
+    wider = mx.uncertainty.predict_rays(model, rays, chunk, temperature=2.0, targets=view.images)
     other = tiny_scene.test.select([1])
-    mx.predict_rays(
+    mx.uncertainty.predict_rays(
         model, rays_for_views(other, tiny_scene.near, tiny_scene.far), chunk, targets=other.images
     )
     assert maps["colour_lower"].shape == (len(MASSES), *rays.batch_shape, 3)
@@ -366,7 +366,7 @@ def test_predictive_pass_of_a_model_compiles_once(tiny_config, tiny_scene, monke
     np.testing.assert_allclose(maps["rgb"], np.asarray(render.fine.rgb), rtol=1e-5, atol=1e-6)
     assert np.all(maps["colour_lower"][-1] <= maps["colour_median"])
     assert np.all(maps["colour_median"] <= maps["colour_upper"][-1])
-    report = mx.calibration_report(maps, view.images, view.depths)
+    report = mx.uncertainty.calibration_report(maps, view.images, view.depths)
     assert set(report["coverage"]) == {"0.5", "0.8", "0.9", "0.95"}
     assert np.isfinite(report["nll"]) and np.isfinite(report["depth_ause"])
 
@@ -386,9 +386,9 @@ def test_eval_writes_uncertainty_maps_and_calibration(tiny_config, tiny_scene, t
         tiny_config, train=dataclasses.replace(tiny_config.train, run_dir=str(run_dir))
     )
     run_dir.mkdir()
-    (run_dir / "config.json").write_text(json.dumps(mx.config_to_dict(config)))
+    (run_dir / "config.json").write_text(json.dumps(mx.config.config_to_dict(config)))
     mx.runs.save_checkpoint(
-        run_dir, mx.init_train_state(config, tiny_scene), config=mx.config_to_dict(config)
+        run_dir, mx.training.init_train_state(config, tiny_scene), config=mx.config.config_to_dict(config)
     )
     out = tmp_path / "eval"
     arguments = [str(run_dir), "--max-views", "1", "--no-lpips", "--no-progress", "--out", str(out)]

@@ -1,7 +1,7 @@
 """Properties of the predictive API over arbitrary inputs (hypothesis).
 
 Every public entry point of the predictive path (`ColourMixture`, `TerminationDistribution`,
-`mx.predictive`, `mx.summarise`) is called with scalars of every accepted type, finite or not,
+`mx.predictive`, `mx.uncertainty.summarise`) is called with scalars of every accepted type, finite or not,
 and ray batches of zero, one or a few rays. Each call either raises a `ValueError` exactly
 when an input is out of its domain, or returns finite numbers that satisfy the distribution's
 invariants: quantiles non-decreasing in the level, lower <= upper, the distribution function
@@ -227,7 +227,7 @@ def tiny_model(tiny_scene):
     from helpers import TINY_OVERRIDES
 
     config = mx.load_config("builtin", TINY_OVERRIDES)
-    return mx.init_train_state(config, tiny_scene).model
+    return mx.training.init_train_state(config, tiny_scene).model
 
 
 _BOUNDS = st.one_of(st.floats(0.0, 8.0), st.sampled_from([math.nan, math.inf, -math.inf]))
@@ -236,7 +236,7 @@ _BOUNDS = st.one_of(st.floats(0.0, 8.0), st.sampled_from([math.nan, math.inf, -m
 def _rays(count, near, far):
     directions = jnp.zeros((count, 3)).at[:, 2].set(-1.0).at[:, 0].set(jnp.linspace(-0.2, 0.2, count))
     directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
-    return mx.RayBundle(
+    return mx.nn.RayBundle(
         origins=jnp.zeros((count, 3)).at[:, 2].set(4.0),
         directions=directions,
         viewdirs=directions,
@@ -258,7 +258,7 @@ def test_predictive_summaries_are_refused_or_ordered(tiny_model, count, near, fa
     rays = _rays(count, near, far)
 
     def summary():
-        return mx.summarise(mx.predictive(tiny_model, rays, temperature=temperature), masses=tuple(masses))
+        return mx.uncertainty.summarise(mx.predictive(tiny_model, rays, temperature=temperature), masses=tuple(masses))
 
     kind, result = _outcome(summary)
     bounds_ok = count == 0 or (math.isfinite(near) and math.isfinite(far) and near <= far)

@@ -34,7 +34,7 @@ def _level_with_depth(depth):
     return LevelOutputs(
         weights=jnp.zeros((count, 2)),
         t_edges=jnp.zeros((count, 3)),
-        field=mx.FieldOutputs(
+        field=mx.nn.FieldOutputs(
             density=jnp.zeros((count, 2)), rgb=jnp.zeros((count, 2, 3)), beta=None, ray_depth=None
         ),
         rgb=jnp.zeros((count, 3)),
@@ -44,7 +44,7 @@ def _level_with_depth(depth):
 
 
 def _rays(count, near, far):
-    return mx.RayBundle(
+    return mx.nn.RayBundle(
         origins=jnp.zeros((count, 3)),
         directions=jnp.tile(jnp.asarray([[0.0, 0.0, -1.0]]), (count, 1)),
         viewdirs=jnp.tile(jnp.asarray([[0.0, 0.0, -1.0]]), (count, 1)),
@@ -118,7 +118,7 @@ def test_the_patches_are_pieces_of_their_cameras_images(smooth_setup):
     assert pool.batch_shape == (2 * per_view, size, size)
     train = dataset.train
     for view, pose in enumerate(unseen_cameras(dataset, 2)):
-        full = mx.camera_rays(pose[None], train.focal, train.height, train.width, dataset.near, dataset.far)
+        full = mx.nn.camera_rays(pose[None], train.focal, train.height, train.width, dataset.near, dataset.far)
         pixels = np.asarray(full.directions[0]).reshape(-1, 3)
         for patch in range(per_view):
             directions = np.asarray(pool.directions[view * per_view + patch])

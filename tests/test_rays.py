@@ -20,7 +20,7 @@ def test_cone_radii_come_from_the_vertical_neighbour():
     pose[:3, :3] = _rotation(0)
     pose[:3, 3] = [0.3, -1.0, 4.0]
     k = intrinsic_matrix(fx, fy, 4.1, 2.7)
-    rays = mx.camera_rays(pose[None, :3], fx, height, width, 2.0, 6.0, intrinsics=k[None])
+    rays = mx.nn.camera_rays(pose[None, :3], fx, height, width, 2.0, 6.0, intrinsics=k[None])
     np.testing.assert_allclose(np.asarray(rays.radii), 2 / (np.sqrt(12) * fy), rtol=1e-5)
 
 
@@ -34,7 +34,7 @@ def test_ndc_view_directions_are_the_unnormalised_world_directions():
     pose = np.eye(4)
     pose[:3, :3] = rotation
     pose[:3, 3] = [0.1, 0.2, 0.0]
-    rays = mx.camera_rays(pose[None, :3], focal, height, width, 0.0, 1.0, ndc=True)
+    rays = mx.nn.camera_rays(pose[None, :3], focal, height, width, 0.0, 1.0, ndc=True)
     rows, cols = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
     camera = np.stack(
         [(cols + 0.5 - width / 2) / focal, -(rows + 0.5 - height / 2) / focal, -np.ones(rows.shape)], -1
@@ -48,5 +48,5 @@ def test_ndc_view_directions_are_the_unnormalised_world_directions():
 def test_bounded_view_directions_are_unit_vectors():
     pose = np.eye(4)
     pose[:3, 3] = [0.0, 0.0, 4.0]
-    rays = mx.camera_rays(pose[None, :3], 10.0, 5, 7, 2.0, 6.0)
+    rays = mx.nn.camera_rays(pose[None, :3], 10.0, 5, 7, 2.0, 6.0)
     np.testing.assert_allclose(np.linalg.norm(np.asarray(rays.viewdirs), axis=-1), 1.0, rtol=1e-6)

@@ -148,16 +148,16 @@ def test_calibration_pixels_are_drawn_per_view_and_depths_kept_where_finite(shor
     _, model = short_run
     val = tiny_scene.val
     pixels = val.num_views * val.height * val.width
-    every = mx.calibration_pit(model, val, tiny_scene.near, tiny_scene.far, max_pixels=None)
+    every = mx.uncertainty.calibration_pit(model, val, tiny_scene.near, tiny_scene.far, max_pixels=None)
     assert every["colour_cdf"].shape == (pixels, 3)
     assert every["depth_cdf"].shape == (int(np.isfinite(val.depths).sum()),)
-    drawn = mx.calibration_pit(model, val, tiny_scene.near, tiny_scene.far, max_pixels=500, seed=3)
+    drawn = mx.uncertainty.calibration_pit(model, val, tiny_scene.near, tiny_scene.far, max_pixels=500, seed=3)
     chosen = np.sort(np.random.default_rng(3).choice(pixels, size=500, replace=False))
     np.testing.assert_allclose(drawn["colour_cdf"], every["colour_cdf"][chosen], atol=1e-6)
     assert drawn["depth_cdf"].size == int(np.isfinite(val.depths.reshape(-1)[chosen]).sum())
     # NDC rays are not measured in z-depth: no depth PIT values from them.
     ndc = dataclasses.replace(val, ndc=True)
-    assert mx.calibration_pit(model, ndc, 0.0, 1.0, max_pixels=50)["depth_cdf"].size == 0
+    assert mx.uncertainty.calibration_pit(model, ndc, 0.0, 1.0, max_pixels=50)["depth_cdf"].size == 0
 
 
 def test_levels_carry_their_masses_and_a_new_calibration_compiles_nothing(short_run, tiny_scene, monkeypatch):
@@ -172,16 +172,16 @@ def test_levels_carry_their_masses_and_a_new_calibration_compiles_nothing(short_
     view = tiny_scene.test.select([0])
     rays = rays_for_views(view, tiny_scene.near, tiny_scene.far)
     rng = np.random.default_rng(8)
-    raw = mx.predict_rays(model, rays, masses=MASSES)
+    raw = mx.uncertainty.predict_rays(model, rays, masses=MASSES)
     fitted = Recalibration.fit("conformal", too_narrow_pit(rng, 400), masses=MASSES)
-    moved = mx.predict_rays(model, rays, masses=MASSES, levels=fitted.interval_levels())
+    moved = mx.uncertainty.predict_rays(model, rays, masses=MASSES, levels=fitted.interval_levels())
     assert not np.allclose(raw["colour_lower"], moved["colour_lower"])
     # Levels fitted for other masses of the same count are refused, not mislabelled.
     other = Recalibration.fit("conformal", too_narrow_pit(rng, 400), masses=(0.6, 0.7, 0.8, 0.9))
     with pytest.raises(ValueError, match="levels belong to the interval masses"):
-        mx.predict_rays(model, rays, masses=MASSES, levels=other.interval_levels())
+        mx.uncertainty.predict_rays(model, rays, masses=MASSES, levels=other.interval_levels())
     with pytest.raises(ValueError, match="pass the recalibration the maps were made with"):
-        mx.coverage_report({**raw, "masses": np.asarray(MASSES)}, view.images, None, other)
+        mx.uncertainty.coverage_report({**raw, "masses": np.asarray(MASSES)}, view.images, None, other)
 
 
 def test_the_mixtures_distribution_functions_match_float64(tmp_path):
@@ -211,7 +211,7 @@ def test_the_mixtures_distribution_functions_match_float64(tmp_path):
 def test_the_termination_distance_cdf_is_piecewise_linear():
     weights = jnp.asarray([[0.0, 0.5, 0.25, 0.25]], jnp.float32)
     edges = jnp.asarray([[1.0, 2.0, 3.0, 4.0, 5.0]], jnp.float32)
-    depth = mx.TerminationDistribution(weights, edges)
+    depth = mx.uncertainty.TerminationDistribution(weights, edges)
     at = jnp.asarray([[2.5]], jnp.float32)[:, 0]
     assert float(depth.cdf(at)[0]) == pytest.approx(0.25)
     assert float(depth.cdf(jnp.asarray([jnp.inf]))[0]) == 1.0
@@ -219,7 +219,7 @@ def test_the_termination_distance_cdf_is_piecewise_linear():
     with pytest.raises(ValueError, match="one distance per ray"):
         depth.cdf(jnp.zeros((2,)))
     # A ray without weight terminates at its far bound, as its quantiles report.
-    empty = mx.TerminationDistribution(jnp.zeros((1, 4), jnp.float32), edges)
+    empty = mx.uncertainty.TerminationDistribution(jnp.zeros((1, 4), jnp.float32), edges)
     assert float(empty.cdf(jnp.asarray([4.9]))[0]) == 0.0 and float(empty.cdf(jnp.asarray([5.0]))[0]) == 1.0
     assert float(empty.quantile(0.5)[0]) == 5.0
 
@@ -332,7 +332,7 @@ def test_recalibration_round_trips_through_json():
     np.testing.assert_array_equal(again.colour_map.knots, fitted.colour_map.knots)
     levels = fitted.interval_levels()
     assert levels.colour_lower.shape == (4, 3) and levels.depth_lower.shape == (4,)
-    assert jax.tree_util.tree_structure(levels) == jax.tree_util.tree_structure(mx.IntervalLevels.raw(MASSES))
+    assert jax.tree_util.tree_structure(levels) == jax.tree_util.tree_structure(mx.uncertainty.IntervalLevels.raw(MASSES))
 
 
 def test_a_conformal_mass_of_one_gives_an_interval_without_bound():
@@ -347,19 +347,19 @@ def test_a_conformal_mass_of_one_gives_an_interval_without_bound():
     coefficients, location, scale = random_mixtures(np.random.default_rng(10), 5, 4)
     weights = jnp.asarray(np.random.default_rng(11).uniform(0.1, 1.0, (5, 4)), jnp.float32)
     edges = jnp.broadcast_to(jnp.linspace(2.0, 6.0, 5, dtype=jnp.float32), (5, 5))
-    prediction = mx.Predictive(
+    prediction = mx.uncertainty.Predictive(
         colour=as_mixture(coefficients, location, scale),
-        depth=mx.TerminationDistribution(weights, edges),
+        depth=mx.uncertainty.TerminationDistribution(weights, edges),
         rgb=jnp.zeros((5, 3)),
         render_depth=jnp.zeros((5,)),
         acc=jnp.ones((5,)),
     )
-    summary = mx.summarise(prediction, (0.5, 0.9), levels=fitted.interval_levels())
+    summary = mx.uncertainty.summarise(prediction, (0.5, 0.9), levels=fitted.interval_levels())
     assert np.all(np.asarray(summary.colour_lower[1]) <= 0.0) and np.all(np.asarray(summary.colour_upper[1]) >= 1.0)
     np.testing.assert_array_equal(np.asarray(summary.depth_lower[1]), 2.0)
     np.testing.assert_array_equal(np.asarray(summary.depth_upper[1]), 6.0)
     # The bounded mass is solved as before.
-    raw = mx.summarise(prediction, (0.5, 0.9))
+    raw = mx.uncertainty.summarise(prediction, (0.5, 0.9))
     assert np.all(np.asarray(summary.colour_upper[0]) <= np.asarray(raw.colour_upper[1]) + 1e-6)
 
 

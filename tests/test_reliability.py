@@ -136,8 +136,9 @@ import gc, signal, time
 # Ctrl-C handled as in a terminal: a test runner started in the background (`cmd &` in a
 # script) passes SIGINT on ignored, and then Python installs no handler of its own.
 signal.signal(signal.SIGINT, signal.default_int_handler)
-import mixnerf_eqx  # installs the hook before JAX is imported
-from mixnerf_eqx._util.interrupt import deferred_interrupts, raise_if_interrupted
+from mixnerf_eqx._util.interrupt import deferred_interrupts, raise_if_interrupted, redeliver_dropped_interrupts
+redeliver_dropped_interrupts()  # as the commands and `fit` do when they start
+import jax  # noqa: F401
 
 def ctrl_c_here(phase, info):
     # A Ctrl-C that Python's handler raises inside a gc callback (as in JAX's): Python drops it.
@@ -307,11 +308,11 @@ def _corrupt(path: Path, how: str) -> None:
 
 def _checkpoints(config, dataset, steps):
     """Checkpoints of the initial state labelled with `steps` (no training needed to read them)."""
-    state = mx.init_train_state(config, dataset)
+    state = mx.training.init_train_state(config, dataset)
     for step in steps:
         labelled = eqx.tree_at(lambda s: s.step, state, jnp.asarray(step, jnp.int32))
-        mx.runs.save_checkpoint(config.train.run_dir, labelled, config=mx.config_to_dict(config))
-    (Path(config.train.run_dir) / "config.json").write_text(json.dumps(mx.config_to_dict(config)))
+        mx.runs.save_checkpoint(config.train.run_dir, labelled, config=mx.config.config_to_dict(config))
+    (Path(config.train.run_dir) / "config.json").write_text(json.dumps(mx.config.config_to_dict(config)))
     return [mx.runs.latest_checkpoint(config.train.run_dir).parent / f"step_{step:08d}" for step in steps]
 
 
@@ -335,31 +336,31 @@ def test_a_damaged_latest_checkpoint_falls_back_to_the_previous_one(tiny_config,
 def test_a_garbage_meta_file_is_named(tiny_config, tiny_scene):
     (checkpoint,) = _checkpoints(tiny_config, tiny_scene, [4])
     (checkpoint / "meta.json").write_text("{not json")
-    with pytest.raises(mx.CheckpointError, match="meta.json"):
+    with pytest.raises(mx.runs.CheckpointError, match="meta.json"):
         mx.runs.read_checkpoint_meta(checkpoint)
     with (
         pytest.warns(RuntimeWarning, match="meta.json"),
-        pytest.raises(mx.CheckpointError, match="can be read"),
+        pytest.raises(mx.runs.CheckpointError, match="can be read"),
     ):
         mx.runs.restore_run(tiny_config.train.run_dir, dataset=tiny_scene)
 
 
 def test_a_checkpoint_of_another_model_is_one_clear_error(tiny_config, tiny_scene):
     (checkpoint,) = _checkpoints(tiny_config, tiny_scene, [2])
-    like = mx.init_train_state(_with(tiny_config, "mlp", width=48), tiny_scene)
-    with pytest.raises(mx.CheckpointError, match="another model or config"):
+    like = mx.training.init_train_state(_with(tiny_config, "mlp", width=48), tiny_scene)
+    with pytest.raises(mx.runs.CheckpointError, match="another model or config"):
         mx.runs.load_checkpoint(checkpoint, like)
 
 
 def test_a_full_disk_leaves_no_staging_folder_and_a_clear_message(tiny_config, tiny_scene, monkeypatch):
     config = _with(tiny_config, "train", max_steps=2)
-    state = mx.init_train_state(config, tiny_scene)
+    state = mx.training.init_train_state(config, tiny_scene)
 
     def full(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(eqx, "tree_serialise_leaves", full)
-    with pytest.raises(mx.CheckpointError, match="No space left on device.*previous checkpoint is intact"):
+    with pytest.raises(mx.runs.CheckpointError, match="No space left on device.*previous checkpoint is intact"):
         mx.runs.save_checkpoint(config.train.run_dir, state, config={})
     assert list((Path(config.train.run_dir) / "checkpoints").iterdir()) == []
 
@@ -449,7 +450,7 @@ def test_eval_refuses_meaningless_numbers(arguments, message, tmp_path, capsys):
 def test_a_huge_chunk_is_bounded_by_the_rays(tiny_config, tiny_scene):
     model = mx.build_model(tiny_config, key=jax.random.key(0))
     rays = mx.data.rays_for_views(tiny_scene.test.select([0]), tiny_scene.near, tiny_scene.far)
-    rendered = mx.render_rays(model, rays, chunk=10**9)
+    rendered = mx.inference.render_rays(model, rays, chunk=10**9)
     count = tiny_scene.test.height * tiny_scene.test.width
     assert rendered.counts.padded_evaluations == count * model.samples_per_ray
 
@@ -592,7 +593,7 @@ def test_a_ctrl_c_while_a_command_loads_its_modules_is_status_130_without_a_trac
 
 
 def test_a_ctrl_c_while_a_command_is_still_importing_is_one_line(tmp_path):
-    # The Ctrl-C lands while the package imports its dependencies: a stand-in for one of them
+    # The Ctrl-C lands while the command imports its dependencies: a stand-in for one of them
     # (first on the path) raises KeyboardInterrupt as it is imported, as a SIGINT there does.
     # (A real SIGINT timed from outside can also land while JAX's compiled library initialises,
     # where it may crash the interpreter before any Python handler runs.)
@@ -612,8 +613,12 @@ def test_a_ctrl_c_while_a_command_is_still_importing_is_one_line(tmp_path):
     assert finished.returncode == 130, finished.stderr
     assert finished.stderr.strip() == "stopped while loading; nothing was done"
     assert not run_dir.exists()
-    # Imported by other code (not started as a command), the interrupt is the caller's.
+    # Loaded by other code (not started as a command), the interrupt is the caller's.
     finished = subprocess.run(
-        [sys.executable, "-c", "import mixnerf_eqx"], capture_output=True, text=True, env=environment, timeout=120
+        [sys.executable, "-c", "import mixnerf_eqx as mx; mx.fit"],
+        capture_output=True,
+        text=True,
+        env=environment,
+        timeout=120,
     )
     assert finished.returncode != 0 and "KeyboardInterrupt" in finished.stderr

@@ -16,7 +16,7 @@ from helpers import (
 )
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import FieldOutputs, VolumeRenderer, blend_weights, composite_rgb, expected_depth
+from mixnerf_eqx.nn import FieldOutputs, VolumeRenderer, blend_weights, composite_rgb, expected_depth
 from mixnerf_eqx._nn.compositing import accumulation
 
 # float32 compositing of ~16 samples: a few ulp per product, relative to values of order one.

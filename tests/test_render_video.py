@@ -93,9 +93,9 @@ def test_the_path_follows_the_kind_of_scene(tiny_scene):
 
 def test_a_path_for_the_other_kind_of_scene_is_drawn_with_a_warning(tiny_scene):
     forward = dataclasses.replace(tiny_scene, train=dataclasses.replace(tiny_scene.train, ndc=True))
-    with pytest.warns(mx.SettingWarning, match="a spiral through a 360-degree scene"):
+    with pytest.warns(mx.config.SettingWarning, match="a spiral through a 360-degree scene"):
         spiral = camera_path(tiny_scene, "spiral", 8)
-    with pytest.warns(mx.SettingWarning, match="an orbit through a forward-facing scene"):
+    with pytest.warns(mx.config.SettingWarning, match="an orbit through a forward-facing scene"):
         orbit = camera_path(forward, "orbit", 8)
     assert spiral.shape == orbit.shape == (8, 3, 4)
     # The natural paths, asked for by name or by auto, draw no warning (warnings are errors here).
@@ -148,7 +148,7 @@ def test_render_writes_an_orbit_video_with_its_frames(trained_run, capsys):
     assert len(pngs) == 6
     run = mx.runs.restore_run(trained_run)
     _, rays_of = path_frames(run.dataset, "auto", 6)
-    colour = to_uint8(mx.render_rays(run.model, rays_of(0)).rgb[0])
+    colour = to_uint8(mx.inference.render_rays(run.model, rays_of(0)).rgb[0])
     first = np.asarray(Image.open(pngs[0]))
     np.testing.assert_array_equal(first[:, :32], colour)
     assert np.mean(np.abs(frames[0].astype(float) - first)) < 4.0

@@ -13,7 +13,7 @@ from helpers import (
     ref_cdf,
 )
 
-from mixnerf_eqx import HierarchicalSampler, RaySamples, StratifiedSampler
+from mixnerf_eqx.nn import HierarchicalSampler, RaySamples, StratifiedSampler
 from mixnerf_eqx._nn.sampler import sample_piecewise_constant
 from mixnerf_eqx._nn.sampler.hierarchical import blur_weights
 

@@ -9,16 +9,7 @@ import pytest
 from helpers import make_ray
 from jaxtyping import TypeCheckError
 
-from mixnerf_eqx import (
-    FieldOutputs,
-    LaplaceMixture,
-    RayBundle,
-    VolumeRenderer,
-    blend_weights,
-    composite_rgb,
-    frustum_gaussians,
-    positional_encoding,
-)
+from mixnerf_eqx.nn import FieldOutputs, LaplaceMixture, RayBundle, VolumeRenderer, blend_weights, composite_rgb, frustum_gaussians, positional_encoding
 
 
 def _ones(*shape, dtype=jnp.float32):
@@ -164,11 +155,11 @@ def test_one_switch_turns_the_checks_off_and_on():
     """`set_typecheck` (what `--no-typecheck` calls) is the only switch, and it acts at call time."""
     import mixnerf_eqx as mx
 
-    assert mx.typecheck_enabled()
+    assert mx.runtime.typecheck_enabled()
     bad = lambda: blend_weights(_ones(5), _edges(7), jnp.float32(1.0))  # noqa: E731
     try:
         mx.set_typecheck(False)
-        assert not mx.typecheck_enabled()
+        assert not mx.runtime.typecheck_enabled()
         # Unchecked, the call runs into the shape mismatch inside the function instead.
         with pytest.raises(Exception) as excinfo:
             bad()
@@ -185,8 +176,8 @@ def test_command_lines_take_no_typecheck():
     from mixnerf_eqx.cli.train import parse_args
 
     with typecheck_argument(parse_args(["--no-typecheck"])):
-        assert not mx.typecheck_enabled()
+        assert not mx.runtime.typecheck_enabled()
     # The switch is restored after the command, so calling `main` from Python changes nothing.
-    assert mx.typecheck_enabled()
+    assert mx.runtime.typecheck_enabled()
     with typecheck_argument(parse_args([])):
-        assert mx.typecheck_enabled()
+        assert mx.runtime.typecheck_enabled()

@@ -40,13 +40,13 @@ _FOUR_DEVICES = textwrap.dedent(
     scene = load_dataset(config.data)
     batch_size = config.train.batch_size
 
-    state = mx.init_train_state(config, scene)
-    data = mx.training_rays(scene)
-    step = mx.make_train_step(config, max_traces=1)
-    draw = eqx.filter_jit(mx.draw_batch)
+    state = mx.training.init_train_state(config, scene)
+    data = mx.training.training_rays(scene)
+    step = mx.training.make_train_step(config, max_traces=1)
+    draw = eqx.filter_jit(mx.training.draw_batch)
     parallel = DataParallel(data_parallel_mesh("auto", batch_size))
-    sharded_step = parallel.step(mx.make_train_step(config, max_traces=1))
-    sharded_draw = parallel.draw(mx.draw_batch)
+    sharded_step = parallel.step(mx.training.make_train_step(config, max_traces=1))
+    sharded_draw = parallel.draw(mx.training.draw_batch)
     sharded_state, sharded_data = parallel.replicate(state), parallel.replicate(data)
 
     def params(s):

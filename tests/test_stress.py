@@ -28,7 +28,7 @@ from helpers import (
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from mixnerf_eqx import LaplaceMixture, blend_weights
+from mixnerf_eqx.nn import LaplaceMixture, blend_weights
 from mixnerf_eqx._nn.compositing import accumulation, composite_rgb, expected_depth
 from mixnerf_eqx._nn.encoding import (
     conical_frustum_moments,

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx import ConfigError, draw_batch, fit, init_train_state, make_train_step, training_rays
+from mixnerf_eqx import ConfigError, fit
+from mixnerf_eqx.training import draw_batch, init_train_state, make_train_step, training_rays
 from mixnerf_eqx._train.checkpoint import latest_checkpoint, read_checkpoint_meta
 from mixnerf_eqx._train.schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
 from mixnerf_eqx.metrics import psnr
@@ -37,7 +38,7 @@ def test_lambda_colour_ramp():
 
 
 def test_sample_space_annealing_matches_regnerf_formula():
-    rays = mx.RayBundle(
+    rays = mx.nn.RayBundle(
         origins=jnp.zeros((1, 3)),
         directions=jnp.ones((1, 3)),
         viewdirs=jnp.ones((1, 3)) / np.sqrt(3),
@@ -96,10 +97,10 @@ def _count_equations(config, tiny_scene):
     model = mx.build_model(config, key=jax.random.key(0))
     data = training_rays(tiny_scene)
     rays, target = data.rays[0, :64], data.rgb[0, :64]
-    weights = mx.LossWeights.from_config(config.loss, config.method)
+    weights = mx.training.LossWeights.from_config(config.loss, config.method)
 
     def loss(model):
-        return mx.loss_fn(model, rays, target, jnp.float32(1.0), weights, key=jax.random.key(0))[0]
+        return mx.training.loss_fn(model, rays, target, jnp.float32(1.0), weights, key=jax.random.key(0))[0]
 
     return len(jax.make_jaxpr(eqx.filter_grad(loss))(model).jaxpr.eqns)
 
@@ -190,7 +191,7 @@ def test_interrupted_write_leaves_previous_checkpoint(tiny_config, tiny_scene, m
 
     state = eqx.tree_at(lambda s: s.step, init_train_state(config, tiny_scene), jnp.asarray(99, jnp.int32))
     monkeypatch.setattr(eqx, "tree_serialise_leaves", crash)
-    with pytest.raises(mx.CheckpointError, match="disk full"):
+    with pytest.raises(mx.runs.CheckpointError, match="disk full"):
         mx.runs.save_checkpoint(config.train.run_dir, state, config={})
     assert latest_checkpoint(config.train.run_dir) == before
 
@@ -239,7 +240,7 @@ def test_schedules_given_as_fractions_of_the_run(tiny_config, tiny_scene):
         mlp=type(config.mlp)(),
         grid=dataclasses.replace(config.grid, coarse_to_fine_fraction=0.5),
     )
-    lengths = mx.schedule_steps(on_grid)
+    lengths = mx.config.schedule_steps(on_grid)
     assert (lengths.warmup, lengths.lambda_colour, lengths.anneal, lengths.coarse_to_fine) == (
         40,
         100,
@@ -247,14 +248,14 @@ def test_schedules_given_as_fractions_of_the_run(tiny_config, tiny_scene):
         200,
     )
     # Without fractions, the step counts as given.
-    plain = mx.schedule_steps(tiny_config)
+    plain = mx.config.schedule_steps(tiny_config)
     assert plain.warmup == tiny_config.optim.warmup_steps
     assert plain.lambda_colour == tiny_config.loss.lambda_colour_steps
     # A continued run keeps the horizon of its first length, so its schedules stay.
     continued = _with(_with_train(on_grid, max_steps=4000), "optim", decay_steps=400)
-    assert mx.schedule_steps(continued) == lengths
+    assert mx.config.schedule_steps(continued) == lengths
     # A tiny fraction still lasts a step.
-    assert mx.schedule_steps(_with(config, "optim", warmup_fraction=1e-6)).warmup == 1
+    assert mx.config.schedule_steps(_with(config, "optim", warmup_fraction=1e-6)).warmup == 1
     # The training step uses them: learning rate and lambda_C at step 1 follow the closed forms.
     state = init_train_state(config, tiny_scene)
     batch = draw_batch(training_rays(tiny_scene), state, config.train.batch_size)
@@ -306,13 +307,13 @@ def test_initial_parameters_equal_those_drawn_op_by_op(tiny_config, tiny_scene, 
     from helpers import TINY_SHARED_OVERRIDES
 
     config = mx.load_config("builtin", [*TINY_SHARED_OVERRIDES, *overrides]) if overrides else tiny_config
-    model_key, _ = jax.random.split(mx.init_key(config))
+    model_key, _ = jax.random.split(mx.training.init_key(config))
     eager = mx.build_model(
         config,
         key=model_key,
         frustum=tiny_scene.frustum,
         white_background=tiny_scene.white_background,
-        scene_box=mx.scene_box(tiny_scene),
+        scene_box=mx.training.scene_box(tiny_scene),
     )
     compiled = init_train_state(config, tiny_scene).model
     want = jax.tree_util.tree_leaves(eqx.filter(eager, eqx.is_array))

@@ -33,9 +33,9 @@ class HalfSpace(AbstractOccupancy):
 def grid_setup():
     config = mx.load_config("builtin_grid", [*TINY_SHARED_OVERRIDES, "occupancy.enabled=true", "occupancy.resolution=16"])
     dataset = load_dataset(config.data)
-    state = mx.init_train_state(config, dataset)
-    data = mx.training_rays(dataset, config.loss)
-    batch = mx.draw_batch(data, state, 48)
+    state = mx.training.init_train_state(config, dataset)
+    data = mx.training.training_rays(dataset, config.loss)
+    batch = mx.training.draw_batch(data, state, 48)
     return config, dataset, state, batch
 
 
@@ -258,7 +258,7 @@ def test_a_grid_that_empties_every_sample_falls_back_to_dense_steps(tiny_config,
         occupancy=occupancy,
         train=dataclasses.replace(tiny_config.train, max_steps=4, eval_every=0),
     )
-    with pytest.warns(mx.SettingWarning, match="training goes on with dense steps"):
+    with pytest.warns(mx.config.SettingWarning, match="training goes on with dense steps"):
         result = mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False, log_every=1)
     assert "box_radius" in result.metrics["skipping_fallback"]
     log = [json.loads(line) for line in (result.run_dir / "train_log.jsonl").read_text().splitlines()]

@@ -156,22 +156,22 @@ def test_a_reveal_longer_than_the_run_is_a_warning_and_a_fraction_is_not(tiny_sc
         "grid.max_resolution=16",
     ]
     long = mx.load_config("builtin", [*grid, "train.max_steps=3", "grid.coarse_to_fine_steps=10"])
-    (message,) = mx.setting_warnings(long)
+    (message,) = mx.config.setting_warnings(long)
     assert message.startswith("grid.coarse_to_fine_steps = 10 is longer than the run (train.max_steps = 3)")
-    assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_fraction=1.0)) == []
-    assert mx.setting_warnings(replace_setting(long, "grid", coarse_to_fine_steps=3)) == []
+    assert mx.config.setting_warnings(replace_setting(long, "grid", coarse_to_fine_fraction=1.0)) == []
+    assert mx.config.setting_warnings(replace_setting(long, "grid", coarse_to_fine_steps=3)) == []
     # The MLP has no levels to reveal: a grid key given to it is an error, not ignored.
     with pytest.raises(mx.ConfigError, match="grid.coarse_to_fine_steps = 10: .grid. does not apply"):
         mx.load_config("builtin", [*TINY_OVERRIDES, "grid.coarse_to_fine_steps=10"])
     # A run with it trains, and says so once at its start.
     long = replace_setting(long, "train", run_dir=str(tmp_path / "run"))
-    with pytest.warns(mx.SettingWarning, match="the finest levels are never fully revealed"):
+    with pytest.warns(mx.config.SettingWarning, match="the finest levels are never fully revealed"):
         result = mx.fit(long, dataset=tiny_scene, progress=False, write_renders=False)
     assert int(result.state.step) == 3
 
 
 def test_the_public_api_keeps_its_names():
-    assert mx.FolderBusyError is not None and callable(mx.runs.hold_folder)
+    assert mx.runs.FolderBusyError is not None and callable(mx.runs.hold_folder)
 
 
 @pytest.fixture(scope="module")
@@ -179,13 +179,13 @@ def tiny_model(tiny_scene):
     from helpers import TINY_OVERRIDES
 
     config = mx.load_config("builtin", TINY_OVERRIDES)
-    return mx.init_train_state(config, tiny_scene).model
+    return mx.training.init_train_state(config, tiny_scene).model
 
 
 def _rays(count, near=2.0, far=6.0):
     origins = jnp.zeros((count, 3)).at[:, 2].set(4.0)
     directions = jnp.zeros((count, 3)).at[:, 2].set(-1.0)
-    return mx.RayBundle(
+    return mx.nn.RayBundle(
         origins=origins,
         directions=directions,
         viewdirs=directions,
@@ -196,8 +196,8 @@ def _rays(count, near=2.0, far=6.0):
 
 
 def test_zero_rays_give_empty_summaries_with_the_shapes_of_one(tiny_model):
-    one = mx.predict_rays(tiny_model, _rays(1), chunk=8)
-    none = mx.predict_rays(tiny_model, _rays(0), chunk=8)
+    one = mx.uncertainty.predict_rays(tiny_model, _rays(1), chunk=8)
+    none = mx.uncertainty.predict_rays(tiny_model, _rays(0), chunk=8)
     assert set(none) == set(one)
     for name, value in one.items():
         if name == "masses":
@@ -216,7 +216,7 @@ def test_rays_with_near_beyond_far_are_refused(tiny_model):
         with pytest.raises(ValueError, match="and bounds with near <= far: 3 of 3 rays do not"):
             mx.predictive(tiny_model, _rays(3, near=near, far=far))
     with pytest.raises(Exception, match="near <= far"):
-        mx.predict_rays(tiny_model, _rays(3, near=6.0, far=2.0), chunk=4)
+        mx.uncertainty.predict_rays(tiny_model, _rays(3, near=6.0, far=2.0), chunk=4)
 
 
 
@@ -226,7 +226,7 @@ def test_colours_of_the_wrong_shape_are_named(tiny_model):
         with pytest.raises(ValueError, match=rf"{method} takes one colour per ray, shape \(3, 3\).*got shape \(2, 3\)"):
             getattr(mixture, method)(jnp.zeros((2, 3)))
     with pytest.raises(ValueError, match=r"targets takes one colour per ray, shape \(3, 3\).*got shape \(3,\)"):
-        mx.predict_rays(tiny_model, _rays(3), chunk=4, targets=np.zeros(3))
+        mx.uncertainty.predict_rays(tiny_model, _rays(3), chunk=4, targets=np.zeros(3))
 
 
 @pytest.mark.parametrize("where", ["origins", "directions"])
@@ -240,13 +240,13 @@ def test_rays_with_a_nan_or_inf_origin_or_direction_are_refused(tiny_model, wher
     with pytest.raises(ValueError, match="finite origins, directions and bounds .*: 1 of 3 rays do not"):
         mx.predictive(tiny_model, rays)
     with pytest.raises(ValueError, match="finite origins, directions"):
-        mx.predict_rays(tiny_model, rays, chunk=4)
+        mx.uncertainty.predict_rays(tiny_model, rays, chunk=4)
 
 
 @pytest.mark.parametrize("bad", [{"temperature": math.inf}, {"temperature": -1.0}, {"masses": (0.5, 1.0)}])
 def test_predict_rays_checks_its_numbers_before_rendering(tiny_model, bad):
     with pytest.raises(ValueError, match="temperature must be a finite positive number|must lie in"):
-        mx.predict_rays(tiny_model, _rays(2), chunk=4, **bad)
+        mx.uncertainty.predict_rays(tiny_model, _rays(2), chunk=4, **bad)
 
 
 @pytest.mark.parametrize("name", ["colour_level", "depth_level"])

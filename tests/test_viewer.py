@@ -144,7 +144,7 @@ def _frames(client, count, timeout=120):
 def test_frames_refine_while_training_updates_the_model(tiny_config, tiny_scene):
     """Parameters that change every step do not hold the picture at the coarsest width: the
     frame in progress refines with the newest model, and restarts once per refresh interval."""
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     viewer = Viewer(model, tiny_scene, port=0, training=True, max_width=128, refresh_s=0.5)
     stop = threading.Event()
 
@@ -168,7 +168,7 @@ def test_frames_refine_while_training_updates_the_model(tiny_config, tiny_scene)
 def test_a_frame_that_fails_is_reported_and_the_next_one_is_drawn(tiny_config, tiny_scene):
     """A spread asked of a model without a mixture (the panel offers it while training MixNeRF;
     here forced) says why in the status line; the client's frames go on."""
-    baseline = dataclasses.replace(mx.init_train_state(tiny_config, tiny_scene).model, mixture=None)
+    baseline = dataclasses.replace(mx.training.init_train_state(tiny_config, tiny_scene).model, mixture=None)
     viewer = Viewer(baseline, tiny_scene, port=0, max_width=64, mixture=True)
     try:
         client = _Client(camera_of_view(tiny_scene.train, 0))
@@ -188,7 +188,7 @@ def test_a_frame_that_fails_is_reported_and_the_next_one_is_drawn(tiny_config, t
 
 
 def test_a_preview_of_a_training_camera_is_the_render_of_that_view(tiny_config, tiny_scene):
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     views = tiny_scene.test
     rays = viewer_rays(camera_of_view(views, 1), views.width, tiny_scene)
     want = mx.render_views(model, views.select([1]), tiny_scene.near, tiny_scene.far)
@@ -202,7 +202,7 @@ def test_a_preview_of_a_training_camera_is_the_render_of_that_view(tiny_config, 
 
 def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeypatch):
     """Preview widths, window shapes and camera poses all reuse one compiled dense render."""
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     once = eqx.filter_jit(eqx.debug.assert_max_traces(lambda m, rays: m(rays).fine, max_traces=1))
     monkeypatch.setattr(evaluation, "_render_dense", once)
     camera = camera_of_view(tiny_scene.train, 0)
@@ -222,7 +222,7 @@ def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeyp
 def test_interval_modes_show_the_recalibrated_90_percent_interval(tiny_config, tiny_scene):
     from mixnerf_eqx._predictive.recalibration import Recalibration
 
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     rays = viewer_rays(camera_of_view(tiny_scene.test, 0), 32, tiny_scene)
     own = Recalibration.raw((0.5, 0.8, 0.9, 0.95))
 
@@ -248,7 +248,7 @@ def test_interval_modes_show_the_recalibrated_90_percent_interval(tiny_config, t
 
 
 def test_the_server_shows_every_camera_renders_and_stops(tiny_config, tiny_scene):
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     viewer = Viewer(model, tiny_scene, port=0, max_width=128)
     try:
         assert viewer.url.startswith("http://127.0.0.1:")
@@ -412,7 +412,7 @@ def test_a_camera_turned_away_from_a_forward_facing_scene_shows_nothing(tiny_con
     pixels are left black instead of showing a mirrored picture. Turned half way, the pixels
     looking into the scene are drawn as before."""
     scene = _forward_facing(tiny_scene)
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     camera = camera_of_view(scene.train, 0)
     assert scene_facing(camera, 32, scene).all()
     assert scene_facing(camera, 32, tiny_scene) is None  # world space: every ray is in the scene
@@ -445,7 +445,7 @@ def test_a_camera_turned_away_from_a_forward_facing_scene_shows_nothing(tiny_con
 def test_each_browser_has_its_own_frustums_hidden_frustum_and_status(tiny_config, tiny_scene):
     """Two browsers: a jump hides the frustum it lands in for the browser that jumped only,
     and moving away shows it again; each status line speaks of its own frames."""
-    model = mx.init_train_state(tiny_config, tiny_scene).model
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
     viewer = Viewer(model, tiny_scene, port=0, max_width=64)
     try:
         first = _Client(camera_of_view(tiny_scene.train, 0), client_id=1)

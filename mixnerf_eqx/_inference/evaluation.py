@@ -138,7 +138,7 @@ def render_rays(
     - `model`: the model.
     - `rays`: rays of any batch shape.
     - `chunk`: rays rendered at once.
-    - `skipping`: skip empty space and finished rays (`mixnerf_eqx.Skipping`); `None`
+    - `skipping`: skip empty space and finished rays (`mixnerf_eqx.inference.Skipping`); `None`
       evaluates the field at every sample.
 
     **Returns:**

@@ -137,6 +137,13 @@ def _live_samples(
     return live, jnp.sum(live)
 
 
+def _segments(num_samples: int, segments: int) -> list[tuple[int, int]]:
+    """The `[lo, hi)` sample ranges a level is evaluated in, front to back: `segments` of them
+    (at most one per sample), as even as whole samples allow."""
+    bounds = np.linspace(0, num_samples, min(segments, num_samples) + 1).round().astype(int).tolist()
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
 @eqx.filter_jit
 def _still_lit(
     model: MixNeRF, outputs: FieldOutputs, samples: RaySamples, rays: RayBundle, stop_transmittance: float
@@ -190,8 +197,7 @@ def _render_level(
     outputs = _unevaluated(model, samples, rays)
     alive = jnp.ones((num_rays,), bool)
     needed = made = 0
-    bounds = np.linspace(0, num_samples, min(skipping.segments, num_samples) + 1).round().astype(int)
-    for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
+    for lo, hi in _segments(num_samples, skipping.segments):
         if lo > 0 and skipping.stop_transmittance > 0:
             alive = _still_lit(model, outputs, samples, rays, skipping.stop_transmittance)
         live, count = _live_samples(occupied, alive, lo, hi)
@@ -217,10 +223,9 @@ def _render_level_chunked(
     outputs = _unevaluated(model, samples, rays)
     alive = jnp.ones((num_rays,), bool)
     needed = made = jnp.zeros((), jnp.int32)
-    bounds = np.linspace(0, num_samples, min(skipping.segments, num_samples) + 1).round().astype(int)
-    for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
+    for lo, hi in _segments(num_samples, skipping.segments):
         if lo > 0 and skipping.stop_transmittance > 0:
-            alive = 1.0 - model.composite(outputs, samples, rays).acc >= skipping.stop_transmittance
+            alive = _still_lit(model, outputs, samples, rays, skipping.stop_transmittance)
         live = occupied[:, lo:hi] & alive[:, None]
         part, _, part_made = evaluate_live(
             model.query_points,

@@ -247,7 +247,7 @@ class Viewer:
     - `max_width`: the finest preview width (one of `PREVIEW_WIDTHS`).
     - `mixture`: offer the predictive spreads (default: whether `model` has a mixture; give it
       when `model` is `None` until the first `update`).
-    - `recalibration`: the intervals the interval modes show (`mx.fit_recalibration` on the
+    - `recalibration`: the intervals the interval modes show (`mx.uncertainty.fit_recalibration` on the
       scene's validation views; the model's own without one).
     """
 

@@ -343,7 +343,7 @@ def build_model(
     - `frustum`: the dataset's frustum shape, used when `config.model.frustum` is `"auto"`.
     - `white_background`: composite on white (Blender-style scenes).
     - `scene_box`: the training frusta's box `(min, max)`, which a grid field spans unless
-      `config.grid.box_radius` is set (`mixnerf_eqx.scene_box` computes it).
+      `config.grid.box_radius` is set (`mixnerf_eqx.training.scene_box` computes it).
 
     **Returns:**
 

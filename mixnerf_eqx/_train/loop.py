@@ -28,7 +28,7 @@ from .._nn.model import MixNeRF
 from .._predictive.uncertainty import predict_views
 from .._util import json_io as strict_json
 from .._util.images import colourise_depth
-from .._util.interrupt import deferred_interrupts, raise_if_interrupted
+from .._util.interrupt import deferred_interrupts, raise_if_interrupted, redeliver_dropped_interrupts
 from .._util.lock import LOCK_NAME, hold_folder
 from .._util.progress import Progress
 from .._util.tensorboard import TensorBoardLog, check_tensorboard
@@ -533,6 +533,8 @@ def fit(
     """
     for message in setting_warnings(config):
         warnings.warn(message, SettingWarning, stacklevel=2)
+    # A Ctrl-C that lands in a garbage-collection callback stops the run all the same.
+    redeliver_dropped_interrupts()
     if "tensorboard" in config.train.log_to:
         check_tensorboard()  # before anything is loaded, built or written
     run_dir = Path(config.train.run_dir)

@@ -19,7 +19,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from .._config import Config, LossConfig, OccupancyConfig, OptimConfig, schedule_steps
+from .._config import Config, LossConfig, OccupancyConfig, OptimConfig, TrainConfig, schedule_steps
 from .._custom_types import PoseStack, PRNGKey
 from .._inference.camera_path import orbit_path, spiral_path
 from .._inference.occupancy import OccupancyGrid, OccupiedCells, empty_grid, frustum_box, update_occupancy
@@ -244,6 +244,18 @@ def _step_keys(state: TrainState) -> tuple[PRNGKey, PRNGKey]:
     return batch_key, render_key
 
 
+def _annealed(
+    rays: RayBundle, step_number: Int[Array, ""] | int, anneal_steps: int, train: TrainConfig
+) -> RayBundle:
+    """`rays` with the sample space of step `step_number` (`anneal_sample_space`)."""
+    return anneal_sample_space(rays, step_number, anneal_steps, train.anneal_start, train.anneal_mid)
+
+
+def _at_step(model: MixNeRF, step_number: Int[Array, ""] | int) -> MixNeRF:
+    """`model` with the field as step `step_number` sees it (a grid's coarse-to-fine levels)."""
+    return eqx.tree_at(lambda m: m.field, model, model.field.at_step(step_number))
+
+
 def draw_batch(data: TrainingRays, state: TrainState, batch_size: int) -> Batch:
     """`batch_size` random pixels (with replacement) of one random training image, drawn
     with the randomness of the step `state` is about to take, and `data.patches_per_step`
@@ -321,9 +333,7 @@ def make_train_step(
 
     def train_step(state: TrainState, batch: Batch) -> tuple[TrainState, StepMetrics]:
         step_number = state.step + 1
-        rays = anneal_sample_space(
-            batch.rays, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
-        )
+        rays = _annealed(batch.rays, step_number, lengths.anneal, train_cfg)
         lambda_colour = linear_ramp(
             step_number,
             loss_cfg.lambda_colour_start,
@@ -332,16 +342,12 @@ def make_train_step(
         )
 
         def scheduled_loss(model: MixNeRF, *args, **kwargs):
-            # The field as this step sees it (a grid's coarse-to-fine levels); the stored
-            # model keeps the whole field.
-            model = eqx.tree_at(lambda m: m.field, model, model.field.at_step(step_number))
-            return loss_fn(model, *args, **kwargs)
+            # The stored model keeps the whole field.
+            return loss_fn(_at_step(model, step_number), *args, **kwargs)
 
         patches = batch.patches
         if patches is not None:
-            patches = anneal_sample_space(
-                patches, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid
-            )
+            patches = _annealed(patches, step_number, lengths.anneal, train_cfg)
         sample_budget = None
         if skips and state.cells is not None:
             # The grid only skips space it has looked at: `cells` is None (dense steps) until
@@ -395,9 +401,9 @@ def make_live_counter(config: Config) -> Callable[[TrainState, RayBundle], Float
 
     @eqx.filter_jit
     def count(state: TrainState, rays: RayBundle) -> Float[Array, "5"]:
-        step_number = state.step + 1
-        rays = anneal_sample_space(rays, step_number, lengths.anneal, train_cfg.anneal_start, train_cfg.anneal_mid)
-        model = eqx.tree_at(lambda m: m.field, state.model, state.model.field.at_step(step_number))
+        step_number = state.step + 1  # as `make_train_step`'s step sees its rays and field
+        rays = _annealed(rays, step_number, lengths.anneal, train_cfg)
+        model = _at_step(state.model, step_number)
         budget = SampleBudget(occupancy=state.cells, stop_transmittance=occupancy.train_stop_transmittance)
         _, report = model.render_within(rays, budget, key=_step_keys(state)[1])
         num_rays = rays.batch_shape[0]

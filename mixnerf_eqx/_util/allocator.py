@@ -5,13 +5,13 @@ starts and frees them when it ends. glibc's malloc serves the large ones (and, o
 worker threads, smaller ones from per-thread arenas that it trims) with fresh pages from the
 kernel and gives them back on `free`, so each training step first touches tens of MB again:
 130 steps of the quick start took three million page faults, and its tri-plane gradient
-ran at less than half the speed (`benchmarks/README.md`, "The CPU step"; the profile in
+ran at less than half the speed (`benchmarks/speed.md`, "The CPU step"; the profile in
 `benchmarks/LOG.md`). mimalloc
 keeps freed pages for reuse; the step's values are unchanged, only where its buffers live.
 
 A process can only get another allocator when it starts (`LD_PRELOAD`), so the commands
-(`python -m mixnerf_eqx.train`, `eval`, `render`, `sweep`) start themselves again, once,
-with mimalloc preloaded, before anything heavier than this module is imported (about 20 ms).
+(`python -m mixnerf_eqx.train`, `eval`, `render`, `sweep`, ...) start themselves again, once,
+with mimalloc preloaded, before JAX or the model is imported (`mixnerf_eqx._util.entry`).
 The library comes from the `cmeel-mimalloc` wheel, a dependency on Linux. The preload is
 taken out of the environment again once it is in effect, so that the programs a command
 starts (FFmpeg for videos, a sweep's submitit jobs) start with the environment the user gave:
@@ -21,15 +21,12 @@ preloads libraries of the user's (`LD_PRELOAD` not empty: an allocator, a saniti
 them alone, and one that cannot be started again without losing work (a program read from
 standard input, an interactive session, a Jupyter kernel) is left as it is, with a warning.
 
-The package's `__init__` calls `preload_for_commands()` before it imports JAX, as it installs
-the interrupt hook there: a command's first process then costs about 20 ms, not the imports.
-
 `MIXNERF_ALLOCATOR` chooses: unset or `mimalloc` (the default), `system` (glibc's malloc, as
 without this module), or the path of another allocator's shared library (tcmalloc, for
 example). In a notebook or your own script, start Python with
-`LD_PRELOAD=$(python -c "import mixnerf_eqx as mx; print(mx.allocator_library())")`, or call
-`mx.preload_allocator()` first thing in a script (the benchmarks do: it starts the script
-again with the library preloaded). `mx.allocator_in_use()` says which one a process runs with.
+`LD_PRELOAD=$(python -c "import mixnerf_eqx as mx; print(mx.runtime.allocator_library())")`, or call
+`mx.runtime.preload_allocator()` first thing in a script (the benchmarks do: it starts the script
+again with the library preloaded). `mx.runtime.allocator_in_use()` says which one a process runs with.
 """
 
 import os
@@ -204,10 +201,3 @@ def preload_allocator() -> None:
 def started_as_command() -> bool:
     """Whether this process was started as `python -m mixnerf_eqx.<command>`."""
     return _started_as_command(sys.orig_argv)
-
-
-def preload_for_commands() -> None:
-    """`preload_allocator()` for a process started as `python -m mixnerf_eqx.<command>`;
-    anything else goes on unchanged."""
-    if _started_as_command(sys.orig_argv):
-        preload_allocator()

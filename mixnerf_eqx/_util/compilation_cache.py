@@ -1,7 +1,7 @@
 """JAX's persistent compilation cache for the command-line tools.
 
 Compiling the training step and the render functions takes a large share of a short run on a
-CPU (`benchmarks/README.md`, "Compilation and start-up"). With the cache, a second run of the same
+CPU (`benchmarks/speed.md`, "Compilation and start-up"). With the cache, a second run of the same
 settings in a new process loads the compiled programs from disk instead. JAX keys each entry
 by the program, the JAX and XLA versions and the device, so a stale entry is never used.
 

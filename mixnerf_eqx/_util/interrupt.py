@@ -11,9 +11,9 @@ waits for such a point is raised at once, for a user who does not want to wait.
 Outside these blocks Python's own handler raises the `KeyboardInterrupt`. Where that lands in
 code whose exceptions Python cannot pass on (a garbage-collection callback such as JAX's, a
 `__del__`), Python prints "Exception ignored in ..." and drops it, and the program runs on as if
-Ctrl-C had not been pressed. `redeliver_dropped_interrupts()`, which importing the package calls
-before it imports JAX, hands such an interrupt to the main thread again, where it is raised (or
-recorded, inside `deferred_interrupts()`) as soon as Python can.
+Ctrl-C had not been pressed. `redeliver_dropped_interrupts()`, which the commands and `fit` call
+as they start (importing the package does not), hands such an interrupt to the main thread
+again, where it is raised (or recorded, inside `deferred_interrupts()`) as soon as Python can.
 """
 
 import _thread
@@ -104,33 +104,3 @@ def redeliver_dropped_interrupts() -> None:
 
 
 STOPPED_WHILE_LOADING = "stopped while loading; nothing was done"
-
-
-def quiet_interrupts_while_starting() -> None:
-    """A Ctrl-C while a command is still importing the package (before its entry module can
-    catch it, `mixnerf_eqx._util.entry`) ends it with the same one line and status 130 instead
-    of a traceback through the imports: nothing has been done yet. Other uncaught exceptions
-    go to the hook that was there; `stop_quieting_interrupts` puts it back once the command's
-    modules are loaded."""
-    global _previous_excepthook
-    _previous_excepthook = previous = sys.excepthook
-
-    def hook(kind: type[BaseException], value: BaseException, traceback: Any) -> None:
-        if issubclass(kind, KeyboardInterrupt):
-            print(STOPPED_WHILE_LOADING, file=sys.stderr)
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(130)  # the commands' status for a Ctrl-C
-        previous(kind, value, traceback)
-
-    sys.excepthook = hook
-
-
-_previous_excepthook: Any = None
-
-
-def stop_quieting_interrupts() -> None:
-    """Puts back the hook `quiet_interrupts_while_starting` replaced (if it did)."""
-    global _previous_excepthook
-    if _previous_excepthook is not None:
-        sys.excepthook, _previous_excepthook = _previous_excepthook, None

@@ -2,7 +2,7 @@
 
 Without `--config` it trains on the built-in procedural scene with the packaged `builtin_grid`
 config, reports the test metrics and writes renders. `--config` takes one of the package's
-configs by name (`llff3_grid`; `mx.config_names()` lists them) or a TOML file. Runs resume
+configs by name (`llff3_grid`; `mx.config.config_names()` lists them) or a TOML file. Runs resume
 from their latest checkpoint.
 """
 

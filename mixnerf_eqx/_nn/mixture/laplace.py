@@ -148,7 +148,7 @@ class LaplaceMixture(AbstractMixture):
         log_transmittance: Float[Array, ""] | None = None,
     ) -> Float[Array, ""]:
         """See `AbstractMixture.colour_nll`. With a `background`, `log_transmittance` (`log T =
-        -sum sigma delta`, `mixnerf_eqx.log_transmittance`) weights its component; without
+        -sum sigma delta`, `mixnerf_eqx.nn.log_transmittance`) weights its component; without
         it, `log(1 - sum w)` stands in, which is exact only while the ray is far from opaque."""
         component = jnp.sum(laplace_log_density(target, rgb, beta), axis=-1)
         if self.background is None:
