@@ -27,7 +27,9 @@ class ConfigError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
-    dataset: Literal["builtin", "blender", "llff", "dtu", "transforms"] = "builtin"  # the files' format
+    # The files' format: "builtin" or a format of `mixnerf_eqx.data.FORMATS` ("blender", "llff",
+    # "dtu", "transforms"); an unknown one is an error naming them when the scene loads.
+    dataset: str = "builtin"
     scene: str = "builtin"  # scene folder (lego, fern, scan8, ...); "builtin": the procedural scene
     data_dir: str = ""  # dataset root; empty: the environment variable MIXNERF_DATA_DIR
     protocol: Literal["mixnerf", "dietnerf"] = "mixnerf"  # Blender split: MixNeRF's or DietNeRF's views

@@ -22,8 +22,7 @@ from .._inference.skipping import RenderCounts, Skipping
 from .._inference.threshold import ThresholdChoice, choose_threshold, threshold_rays
 from .._nn.model import MixNeRF
 from .._util.images import colourise_depth, save_png
-from ..data import Dataset, load_dataset
-from ..data._registry import data_root
+from ..data import Dataset, data_root, load_dataset
 from .checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, load_latest_readable
 from .state import TrainState, init_train_state, make_occupancy_grid
 

@@ -19,16 +19,14 @@ import numpy as np
 
 from .._config import Config, ConfigError, config_from_dict
 from .._util import json_io as strict_json
-from ..data import blender, dtu, llff
+from ..data import FORMATS
 from .checkpoint import CheckpointError, latest_checkpoint, read_checkpoint_meta
 from .run_folder import check_resumable, continued_config
 
-# The scenes whose mean a paper's table reports, by dataset format.
+# The scenes whose mean a paper's table reports, by dataset format (each format's own list).
 BENCHMARK_SCENES: dict[str, tuple[str, ...]] = {
     "builtin": ("builtin",),
-    "llff": llff.SCENES,
-    "blender": blender.SCENES,
-    "dtu": dtu.SCANS,
+    **{name: format.scenes for name, format in FORMATS.items() if format.scenes},
 }
 METRICS = ("psnr", "ssim", "lpips", "depth_mae")
 _PUBLISHED = re.compile(r"\b(PSNR|SSIM|LPIPS)\s+([0-9]*\.?[0-9]+)")

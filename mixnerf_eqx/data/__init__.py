@@ -16,9 +16,11 @@ from ._dataset import rays_at_poses as rays_at_poses
 from ._dataset import rays_for_views as rays_for_views
 from ._errors import DatasetError as DatasetError
 from ._errors import UnknownSceneError as UnknownSceneError
+from ._format import ENV_DATA_DIR as ENV_DATA_DIR
+from ._format import DatasetFormat as DatasetFormat
+from ._format import data_root as data_root
 from ._registry import DATASETS as DATASETS
-from ._registry import ENV_DATA_DIR as ENV_DATA_DIR
-from ._registry import data_root as data_root
+from ._registry import FORMATS as FORMATS
 from ._registry import find_scene as find_scene
 from ._registry import load_dataset as load_dataset
 from ._splits import evenly_spaced as evenly_spaced

@@ -14,47 +14,28 @@ be the `nerf_synthetic/` (or `nerf_llff_data/`, `rs_dtu_4/DTU/`) folder itself.
 """
 
 import dataclasses
-import os
 from pathlib import Path
 
 from .._config import DataConfig
 from . import blender, dtu, llff, transforms
 from ._dataset import Dataset
 from ._errors import DatasetError, UnknownSceneError
+from ._format import ENV_DATA_DIR, DatasetFormat, data_root
 
-__all__ = ["DATASETS", "ENV_DATA_DIR", "data_root", "find_scene", "load_dataset"]
+__all__ = ["DATASETS", "ENV_DATA_DIR", "FORMATS", "data_root", "find_scene", "load_dataset"]
 
-ENV_DATA_DIR = "MIXNERF_DATA_DIR"
-DATASETS = ("builtin", "blender", "llff", "dtu", "transforms")
-_LAYOUTS = {
-    "blender": ("nerf_synthetic",),
-    "llff": ("nerf_llff_data",),
-    "dtu": ("rs_dtu_4/DTU", "rs_dtu_4"),
-    "transforms": (),
+# The formats of scenes on disk, one entry each (a format is its module and its line here).
+FORMATS: dict[str, DatasetFormat] = {
+    format.name: format for format in (blender.FORMAT, llff.FORMAT, dtu.FORMAT, transforms.FORMAT)
 }
-_BENCHMARK_SCENES = {"blender": blender.SCENES, "llff": llff.SCENES, "dtu": dtu.SCANS, "transforms": ()}
-_RELEASES = {
-    "blender": "the NeRF synthetic release (nerf_synthetic/)",
-    "llff": "the NeRF LLFF release (nerf_llff_data/)",
-    "dtu": "pixelNeRF's DTU release (rs_dtu_4/)",
-    "transforms": "the scene's folder with its transforms.json",
-}
-_MASK_LAYOUTS = ("idrmasks", "submission_data/idrmasks")
 
 
-def data_root(config: DataConfig) -> Path:
-    """The dataset root: `config.data_dir`, else `$MIXNERF_DATA_DIR`; it must be a folder."""
-    raw = config.data_dir or os.environ.get(ENV_DATA_DIR, "")
-    if not raw:
-        raise DatasetError(
-            f"no dataset root for the {config.dataset} scene {config.scene!r}: pass --data-dir DIR, set "
-            f"data.data_dir in the config, or set the environment variable {ENV_DATA_DIR}."
-        )
-    root = Path(raw).expanduser()
-    source = "data.data_dir (--data-dir)" if config.data_dir else ENV_DATA_DIR
-    if not root.is_dir():
-        raise DatasetError(f"dataset root not found: {root} (from {source}) is not a folder. Fix the path.")
-    return root
+def dataset_names() -> tuple[str, ...]:
+    """Every value `data.dataset` may take: the built-in scene, then the formats on disk."""
+    return ("builtin", *FORMATS)
+
+
+DATASETS = dataset_names()  # at import; `dataset_names()` sees formats added since
 
 
 def _subfolders(folder: Path, limit: int = 20) -> str:
@@ -74,15 +55,16 @@ def find_scene(root: Path, dataset: str, scene: str) -> Path:
     """
     if not scene or scene in (".", ".."):
         raise DatasetError(f"data.scene is {scene!r}; name the scene's folder (for example lego or fern).")
-    candidates = [root / layout / scene for layout in _LAYOUTS[dataset]] + [root / scene]
+    layouts = FORMATS[dataset].layouts
+    candidates = [root / layout / scene for layout in layouts] + [root / scene]
     for candidate in candidates:
         if candidate.is_dir():
             return candidate
     looked = " or ".join(str(c) for c in candidates)
-    known = _BENCHMARK_SCENES[dataset]
+    known = FORMATS[dataset].scenes
     found = "; ".join(
         f"folders in {folder}: {_subfolders(folder)}"
-        for folder in [root / layout for layout in _LAYOUTS[dataset]] + [root]
+        for folder in [root / layout for layout in layouts] + [root]
         if folder.is_dir()
     )
     if known and scene not in known:
@@ -92,14 +74,8 @@ def find_scene(root: Path, dataset: str, scene: str) -> Path:
         )
     raise DatasetError(
         f"{dataset} scene {scene!r} not found: there is no {looked} ({found}). Download "
-        f"{_RELEASES[dataset]} and point --data-dir (or {ENV_DATA_DIR}) at the folder that holds it."
+        f"{FORMATS[dataset].release} and point --data-dir (or {ENV_DATA_DIR}) at the folder that holds it."
     )
-
-
-def _mask_roots(config: DataConfig, root: Path) -> list[Path]:
-    if config.dtu_mask_dir:
-        return [Path(config.dtu_mask_dir).expanduser()]
-    return [root / layout for layout in _MASK_LAYOUTS if (root / layout).is_dir()]
 
 
 def _load_builtin(config: DataConfig) -> Dataset:
@@ -107,7 +83,7 @@ def _load_builtin(config: DataConfig) -> Dataset:
     if config.scene != "builtin":
         raise DatasetError(
             f'unknown scene {config.scene!r} for data.dataset = "builtin" (whose only scene is '
-            f'"builtin"); for a scene on disk set data.dataset to one of {", ".join(DATASETS[1:])}.'
+            f'"builtin"); for a scene on disk set data.dataset to one of {", ".join(FORMATS)}.'
         )
     if config.image_downscale != 1:
         raise DatasetError(
@@ -132,8 +108,10 @@ def _load_builtin(config: DataConfig) -> Dataset:
 
 def _check_scene_config(config: DataConfig) -> None:
     """Checks the settings of a scene on disk that no format's loader checks first."""
-    if config.dataset not in DATASETS:
-        raise DatasetError(f"unknown dataset format {config.dataset!r}; choose one of {', '.join(DATASETS)}.")
+    if config.dataset not in FORMATS:
+        raise DatasetError(
+            f"unknown dataset format {config.dataset!r} (data.dataset); choose one of {', '.join(dataset_names())}."
+        )
     # Checked here, not left to blender.split_ids: with type checking on, an unknown protocol
     # would fail load_blender's Literal annotation with a TypeCheckError instead.
     if config.protocol not in ("mixnerf", "dietnerf"):
@@ -180,47 +158,8 @@ def load_dataset(config: DataConfig) -> Dataset:
     if config.dataset == "builtin":
         return _load_builtin(config)
     _check_scene_config(config)
-    bounds = (config.near, config.far) if config.far > 0 else None
     scene_dir = _scene_dir(config)
-
-    # The format loaders are called from here, not from a helper: the stack levels of their
-    # warnings count on it.
-    if config.dataset == "blender":
-        dataset = blender.load_blender(
-            scene_dir,
-            num_train_views=config.num_train_views,
-            protocol=config.protocol,
-            max_test_views=config.max_test_views,
-            max_val_views=config.max_val_views,
-            downscale=config.image_downscale,
-        )
-    elif config.dataset == "llff":
-        dataset = llff.load_llff(
-            scene_dir,
-            num_train_views=config.num_train_views,
-            max_test_views=config.max_test_views,
-            max_val_views=config.max_val_views,
-            downscale=config.image_downscale,
-        )
-    elif config.dataset == "dtu":
-        dataset = dtu.load_dtu(
-            scene_dir,
-            num_train_views=config.num_train_views,
-            mask_roots=_mask_roots(config, data_root(config)),
-            masks_required=bool(config.dtu_mask_dir),
-            max_test_views=config.max_test_views,
-            max_val_views=config.max_val_views,
-            downscale=config.image_downscale,
-        )
-    else:
-        return transforms.load_transforms(
-            scene_dir,
-            num_train_views=config.num_train_views,
-            max_test_views=config.max_test_views,
-            max_val_views=config.max_val_views,
-            downscale=config.image_downscale,
-            bounds=bounds,
-        )
-    if bounds is not None:
-        dataset = dataclasses.replace(dataset, near=bounds[0], far=bounds[1])
+    dataset = FORMATS[config.dataset].load(scene_dir, config)
+    if config.far > 0:  # bounds given in the config replace the format's own
+        dataset = dataclasses.replace(dataset, near=config.near, far=config.far)
     return dataset

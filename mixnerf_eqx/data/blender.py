@@ -38,6 +38,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .._config import DataConfig
 from ._dataset import Dataset, Views
 from ._downscale import check_factor, downscale_centred_camera, downscale_image
 from ._errors import DatasetError
@@ -49,6 +50,7 @@ from ._files import (
     read_json,
     to_float,
 )
+from ._format import DatasetFormat
 from ._poses import check_field_of_view, parse_transform_matrix
 from ._splits import describe_validation, near_test, subsample_test_ids, validation_ids
 
@@ -285,3 +287,23 @@ def load_blender(
         val=val,
         val_source=val_source,
     )
+
+
+def _load_from_config(scene_dir: Path, config: DataConfig) -> Dataset:
+    return load_blender(
+        scene_dir,
+        num_train_views=config.num_train_views,
+        protocol=config.protocol,
+        max_test_views=config.max_test_views,
+        max_val_views=config.max_val_views,
+        downscale=config.image_downscale,
+    )
+
+
+FORMAT = DatasetFormat(
+    name="blender",
+    layouts=("nerf_synthetic",),
+    scenes=SCENES,
+    release="the NeRF synthetic release (nerf_synthetic/)",
+    load=_load_from_config,
+)

@@ -38,10 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .._config import DataConfig
 from ._dataset import Dataset, Views
 from ._downscale import check_factor, downscale_image, downscale_intrinsics, downscale_mask
 from ._errors import DatasetError
 from ._files import area_downsample, check_same_size, list_images, read_image, read_images, require_file
+from ._format import DatasetFormat, data_root
 from ._poses import decompose_projection, recenter_poses
 from ._splits import describe_validation, subsample_test_ids, validation_ids
 
@@ -320,3 +322,33 @@ def load_dtu(
             "views outside the protocol's training and test ids", "no view left over", val_ids, left_out
         ),
     )
+
+
+# Where RegNeRF's object masks are looked for under the dataset root.
+MASK_LAYOUTS = ("idrmasks", "submission_data/idrmasks")
+
+
+def _load_from_config(scan_dir: Path, config: DataConfig) -> Dataset:
+    if config.dtu_mask_dir:
+        mask_roots = [Path(config.dtu_mask_dir).expanduser()]
+    else:
+        root = data_root(config)
+        mask_roots = [root / layout for layout in MASK_LAYOUTS if (root / layout).is_dir()]
+    return load_dtu(
+        scan_dir,
+        num_train_views=config.num_train_views,
+        mask_roots=mask_roots,
+        masks_required=bool(config.dtu_mask_dir),
+        max_test_views=config.max_test_views,
+        max_val_views=config.max_val_views,
+        downscale=config.image_downscale,
+    )
+
+
+FORMAT = DatasetFormat(
+    name="dtu",
+    layouts=("rs_dtu_4/DTU", "rs_dtu_4"),
+    scenes=SCANS,
+    release="pixelNeRF's DTU release (rs_dtu_4/)",
+    load=_load_from_config,
+)

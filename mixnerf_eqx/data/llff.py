@@ -22,10 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .._config import DataConfig
 from ._dataset import Dataset, Views
 from ._downscale import check_factor, downscale_centred_camera, downscale_image
 from ._errors import DatasetError
 from ._files import check_same_size, list_images, read_images, read_npy, require_dir
+from ._format import DatasetFormat
 from ._poses import check_camera, recenter_poses
 from ._splits import describe_validation, holdout_split, subsample_test_ids, validation_ids
 
@@ -180,3 +182,22 @@ def load_llff(
             left_out,
         ),
     )
+
+
+def _load_from_config(scene_dir: Path, config: DataConfig) -> Dataset:
+    return load_llff(
+        scene_dir,
+        num_train_views=config.num_train_views,
+        max_test_views=config.max_test_views,
+        max_val_views=config.max_val_views,
+        downscale=config.image_downscale,
+    )
+
+
+FORMAT = DatasetFormat(
+    name="llff",
+    layouts=("nerf_llff_data",),
+    scenes=SCENES,
+    release="the NeRF LLFF release (nerf_llff_data/)",
+    load=_load_from_config,
+)

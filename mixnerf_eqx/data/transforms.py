@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from .._config import DataConfig
 from .._nn.rays import intrinsic_matrix
 from ._dataset import Dataset, Views
 from ._downscale import check_factor, downscale_image, downscale_intrinsics
@@ -41,6 +42,7 @@ from ._files import (
     read_images,
     read_json,
 )
+from ._format import DatasetFormat
 from ._poses import check_field_of_view, parse_transform_matrix
 from ._splits import describe_validation, holdout_split, subsample_test_ids, validation_ids
 
@@ -261,3 +263,23 @@ def load_transforms(
             left_out,
         ),
     )
+
+
+def _load_from_config(scene_dir: Path, config: DataConfig) -> Dataset:
+    return load_transforms(
+        scene_dir,
+        num_train_views=config.num_train_views,
+        max_test_views=config.max_test_views,
+        max_val_views=config.max_val_views,
+        downscale=config.image_downscale,
+        bounds=(config.near, config.far) if config.far > 0 else None,
+    )
+
+
+FORMAT = DatasetFormat(
+    name="transforms",
+    layouts=(),
+    scenes=(),
+    release="the scene's folder with its transforms.json",
+    load=_load_from_config,
+)
