@@ -212,7 +212,7 @@ def schedule_overrides(config: Config, max_steps: int, explicit: set[str]) -> li
 
     The paper's learning-rate warm-up (512 steps), lambda_C ramp (512) and sample-space
     annealing (256 or 512) are kept unless they would exceed a tenth (warm-up, ramp) or a
-    fifth (annealing) of `max_steps`, the shares that `short_real_runs.py` uses; then they
+    fifth (annealing) of `max_steps`, the shares that `experiments/short_real_runs.py` uses; then they
     are cut to that share. Keys set on the command line (`explicit`) are left alone.
     """
     overrides = [f"train.max_steps={max_steps}"]

@@ -127,7 +127,7 @@ def test_the_check_sees_a_lower_import():
 def test_benchmarks_use_the_public_api():
     """Benchmarks import `mixnerf_eqx` as users do: no private module (`mixnerf_eqx._name`)."""
     private = []
-    for path in sorted((REPO / "benchmarks").glob("*.py")):
+    for path in sorted((REPO / "benchmarks").rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             names = []
             if isinstance(node, ast.ImportFrom) and node.module:

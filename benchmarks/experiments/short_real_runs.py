@@ -17,9 +17,12 @@ run folders are resumed.
 import argparse
 import json
 import time
+import sys
 from pathlib import Path
 
-import harness
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # harness.py, one floor up
+
+import harness  # noqa: E402
 
 import mixnerf_eqx as mx
 from mixnerf_eqx.data import load_dataset

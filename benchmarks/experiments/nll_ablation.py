@@ -25,10 +25,13 @@ Writes `benchmarks/results/nll_ablation_<backend>.json` unless `--out` says othe
 
 import argparse
 import time
+import sys
 from pathlib import Path
 
 import equinox as eqx
-import harness
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # harness.py, one floor up
+
+import harness  # noqa: E402
 import jax
 import jax.numpy as jnp
 import optax
