@@ -11,7 +11,7 @@ from PIL import Image
 import mixnerf_eqx as mx
 from mixnerf_eqx import evaluate, fit, render_views
 from mixnerf_eqx.inference import render_rays
-from mixnerf_eqx._inference.evaluation import join_chunks, map_ray_chunks
+from mixnerf_eqx._nn.chunks import join_chunks, map_ray_chunks
 from mixnerf_eqx.cli.eval import main as eval_main
 from mixnerf_eqx.data import rays_for_views
 from mixnerf_eqx.metrics import lpips_available

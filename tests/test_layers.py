@@ -136,3 +136,21 @@ def test_benchmarks_use_the_public_api():
                 names = [alias.name for alias in node.names]
             private += [f"{path.name}: {name}" for name in names if name.startswith("mixnerf_eqx._")]
     assert not private, private
+
+
+def test_no_import_runs_back_up_between_folders():
+    """The package's folders import one another without a cycle (`_predictive` uses the chunked
+    map from `_nn`, not from `_inference`, whose viewer uses `_predictive`)."""
+    import graphlib
+
+    def folder(path: Path) -> str:
+        parts = path.relative_to(PACKAGE).parts
+        return parts[0] if len(parts) > 1 else parts[0].removesuffix(".py")
+
+    graph: dict[str, set[str]] = {}
+    for path in package_files():
+        graph.setdefault(folder(path), set()).update(
+            folder(file) for file in imported_files(path) if folder(file) != folder(path)
+        )
+    order = list(graphlib.TopologicalSorter(graph).static_order())  # CycleError on a cycle
+    assert order.index("_nn") < order.index("_predictive") < order.index("_inference") < order.index("_train")

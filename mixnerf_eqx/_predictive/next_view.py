@@ -26,7 +26,7 @@ from jaxtyping import Float
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._inference.evaluation import join_chunks, map_ray_chunks
+from .._nn.chunks import join_chunks, map_ray_chunks
 from .._nn.model import MixNeRF
 from .._nn.rays import RayBundle
 from ..data import Views, rays_at_poses

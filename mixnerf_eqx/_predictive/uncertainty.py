@@ -20,7 +20,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
-from .._inference.evaluation import join_chunks, map_ray_chunks
+from .._nn.chunks import join_chunks, map_ray_chunks
 from .._nn.model import MixNeRF
 from .._nn.rays import RayBundle
 from .._util.images import save_png

@@ -8,7 +8,6 @@ scripts share one `setup_model`.
 """
 
 import dataclasses
-import math
 from collections.abc import Callable
 from typing import Any
 

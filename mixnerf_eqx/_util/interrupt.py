@@ -18,7 +18,6 @@ again, where it is raised (or recorded, inside `deferred_interrupts()`) as soon 
 
 import _thread
 import contextlib
-import os
 import signal
 import sys
 import threading
