@@ -18,7 +18,15 @@ import warnings as _warnings
 import jaxtyping as _jaxtyping
 import lazy_loader as _lazy_loader
 
-# The hook stays for the package's own modules (and only those), which load as they are used.
+# The commands' start-up modules and the table of moved names use the standard library only;
+# loaded before the hook, they stay unchecked, so that a command restarts itself with its
+# allocator before anything imports JAX (which the hook's checks do).
+from ._util import allocator as _allocator  # noqa: F401
+from ._util import entry as _entry  # noqa: F401
+from ._util import interrupt as _interrupt  # noqa: F401
+from ._util.moved import moved_name as _moved_name
+
+# The hook stays for the package's other modules, which load as they are used.
 _jaxtyping.install_import_hook(__name__, "beartype.beartype")
 
 _load, __dir__, __all__ = _lazy_loader.attach_stub(__name__, __file__)
@@ -28,9 +36,7 @@ def __getattr__(name: str):
     try:
         return _load(name)
     except AttributeError:
-        from ._util.moved import moved_name
-
-        place, value = moved_name(name)  # a name of an earlier release, or AttributeError
+        place, value = _moved_name(name)  # a name of an earlier release, or AttributeError
         _warnings.warn(
             f"mixnerf_eqx.{name} is deprecated and will be removed in the next release: use {place}",
             DeprecationWarning,

@@ -25,6 +25,8 @@ from ._nn.field import MipNeRFField as MipNeRFField
 from ._nn.field import TriPlaneEncoding as TriPlaneEncoding
 from ._nn.field import level_resolutions as level_resolutions
 from ._nn.field import level_scale_weights as level_scale_weights
+from ._nn.field import vmap_density as vmap_density
+from ._nn.field import vmap_field as vmap_field
 from ._nn.mixture import AbstractMixture as AbstractMixture
 from ._nn.mixture import LaplaceMixture as LaplaceMixture
 from ._nn.mixture.laplace import laplace_log_density as laplace_log_density

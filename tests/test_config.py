@@ -265,7 +265,9 @@ def test_moved_public_names_say_where_they_went():
         assert callable(getattr(importlib.import_module(module), name))
     with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
         mx.no_such_name  # noqa: B018
-    assert not hasattr(mx, "hold_folder") and mx.runs.FolderBusyError is mx.runs.FolderBusyError
+    assert not hasattr(mx, "hold_folder")
+    with pytest.warns(DeprecationWarning, match="use mixnerf_eqx.runs.FolderBusyError"):
+        assert mx.FolderBusyError is mx.runs.FolderBusyError
 
 
 def test_schema_imports_no_model():

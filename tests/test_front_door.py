@@ -171,6 +171,14 @@ def test_importing_the_package_loads_nothing_heavy_and_changes_no_handler():
     assert report["finders_added"] == ["jaxtyping._import_hook"]
 
 
+def test_a_command_starts_without_jax():
+    # The start-up modules are loaded before the shape-check hook, whose checks import JAX: a
+    # command restarts itself with its allocator before paying for that import.
+    program = "import sys\nimport mixnerf_eqx._util.entry\nprint('jax' in sys.modules)\n"
+    finished = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, check=True)
+    assert finished.stdout.strip() == "False"
+
+
 def test_the_top_level_is_short_and_every_name_loads_without_a_warning():
     assert 15 <= len(mx.__all__) <= 30
     assert sorted(dir(mx)) == sorted(mx.__all__)
@@ -225,6 +233,14 @@ def test_a_formerly_flat_name_works_with_a_warning_that_names_its_place():
         [sys.executable, "-c", program], capture_output=True, text=True, check=True, timeout=300
     )
     found = json.loads(finished.stdout)
+    # Looked up again, a name is the package's own attribute: no second warning.
+    again = subprocess.run(
+        [sys.executable, "-W", "error::DeprecationWarning", "-c",
+         "import warnings\nimport mixnerf_eqx as mx\nwith warnings.catch_warnings():\n"
+         "    warnings.simplefilter('ignore')\n    first = mx.camera_rays\nassert mx.camera_rays is first\n"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stderr
     wrong = {name: got for name, got in found.items() if not (got[0] == 1 and got[1] in NAMESPACES and got[2])}
     assert wrong == {}
     assert len(found) == len(FORMERLY_FLAT) > 100
@@ -235,8 +251,9 @@ def test_unknown_and_renamed_names_are_errors():
         mx.no_such_name  # noqa: B018
     with pytest.raises(AttributeError, match="has moved: use mixnerf_eqx.inference.choose_threshold"):
         mx.calibrate_threshold  # noqa: B018
-    # Names of the namespaces that were never at the top level are not found there.
-    for name in ("restore_run", "load_dataset", "psnr", "Run"):
+    # Names of the namespaces that were never at the top level are not found there, nor are
+    # a module the namespaces import.
+    for name in ("restore_run", "load_dataset", "psnr", "Run", "vmap_field", "jax"):
         with pytest.raises(AttributeError):
             getattr(mx, name)
     with pytest.raises(AttributeError, match="has no attribute '_private'"):

@@ -47,6 +47,18 @@ class SphereField(mx.nn.AbstractField):
         rgb = 0.5 + 0.4 * jnp.sin(3.0 * mean + viewdir)
         return mx.nn.FieldOutputs(density=self.density(mean, cov), rgb=rgb, beta=None, ray_depth=None)
 
+    def density_batch(self, means, covs):
+        return mx.nn.vmap_density(self, means, covs)
+
+    def evaluate_batch(self, means, covs, viewdirs, keys=None):
+        return mx.nn.vmap_field(self, means, covs, viewdirs, keys)
+
+    def regulariser(self):
+        return jnp.zeros(())
+
+    def at_step(self, step):
+        return self
+
 
 def _sphere(inside=20.0, radius=0.6):
     return SphereField(centre=jnp.array([0.1, -0.05, 0.0]), inside=jnp.asarray(inside), radius=radius)

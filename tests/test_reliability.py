@@ -592,14 +592,16 @@ def test_a_ctrl_c_while_a_command_loads_its_modules_is_status_130_without_a_trac
         runpy.run_module(f"mixnerf_eqx.{command}", run_name="not_main")
 
 
-def test_a_ctrl_c_while_a_command_is_still_importing_is_one_line(tmp_path):
-    # The Ctrl-C lands while the command imports its dependencies: a stand-in for one of them
-    # (first on the path) raises KeyboardInterrupt as it is imported, as a SIGINT there does.
-    # (A real SIGINT timed from outside can also land while JAX's compiled library initialises,
-    # where it may crash the interpreter before any Python handler runs.)
+@pytest.mark.parametrize("dependency", ["jax", "optax"])
+def test_a_ctrl_c_while_a_command_is_still_importing_is_one_line(dependency, tmp_path):
+    # The Ctrl-C lands while the command imports its dependencies (JAX first, then the rest):
+    # a stand-in for one of them (first on the path) raises KeyboardInterrupt as it is
+    # imported, as a SIGINT there does. (A real SIGINT timed from outside can also land while
+    # JAX's compiled library initialises, where it may crash the interpreter before any Python
+    # handler runs.)
     stand_in = tmp_path / "path"
     stand_in.mkdir()
-    (stand_in / "optax.py").write_text("raise KeyboardInterrupt\n")
+    (stand_in / f"{dependency}.py").write_text("raise KeyboardInterrupt\n")
     run_dir = tmp_path / "run"
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join([str(stand_in), os.environ.get("PYTHONPATH", "")])}
     finished = subprocess.run(

@@ -23,11 +23,15 @@ from ..data import FORMATS
 from .checkpoint import CheckpointError, latest_checkpoint, read_checkpoint_meta
 from .run_folder import check_resumable, continued_config
 
-# The scenes whose mean a paper's table reports, by dataset format (each format's own list).
-BENCHMARK_SCENES: dict[str, tuple[str, ...]] = {
-    "builtin": ("builtin",),
-    **{name: format.scenes for name, format in FORMATS.items() if format.scenes},
-}
+def _known_scenes(dataset: str) -> tuple[str, ...]:
+    """The scenes whose mean a paper's table reports for `dataset` (its format's own list, read
+    when asked, so that a format registered later counts); an unknown format is an error."""
+    if dataset == "builtin":
+        return ("builtin",)
+    if dataset not in FORMATS:
+        raise ConfigError(f"unknown data.dataset {dataset!r}; choose one of builtin, {', '.join(FORMATS)}")
+    return FORMATS[dataset].scenes
+
 METRICS = ("psnr", "ssim", "lpips", "depth_mae")
 _PUBLISHED = re.compile(r"\b(PSNR|SSIM|LPIPS)\s+([0-9]*\.?[0-9]+)")
 
@@ -47,7 +51,7 @@ class SweepRun:
 
 def benchmark_scenes(config: Config) -> tuple[str, ...]:
     """The scenes of `config`'s benchmark (`data.dataset`)."""
-    scenes = BENCHMARK_SCENES.get(config.data.dataset)
+    scenes = _known_scenes(config.data.dataset)
     if not scenes:
         raise ConfigError(
             f"data.dataset = {config.data.dataset!r} has no benchmark scenes; name them with --scenes"
@@ -63,7 +67,7 @@ def _check_scene_names(config: Config, scenes: Sequence[str]) -> None:
     dataset's root (a scene whose files are missing still fails only its own runs)."""
     from ..data import DatasetError, UnknownSceneError, data_root, find_scene
 
-    known = BENCHMARK_SCENES.get(config.data.dataset) or ()
+    known = _known_scenes(config.data.dataset)
     if not known or all(scene in known for scene in scenes):
         return
     try:
@@ -222,7 +226,7 @@ def aggregate(
         "chosen_on": config.chosen_on,
         "scenes": scenes,
         "seeds": seeds,
-        "benchmark_scenes": list(BENCHMARK_SCENES.get(config.data.dataset, ())),
+        "benchmark_scenes": list(_known_scenes(config.data.dataset)),
         "complete_seeds": complete_seeds,
         "missing": [f"{run.scene} seed {run.seed}" for run in runs if (run.scene, run.seed) not in results],
         "per_scene": per_scene,

@@ -1,6 +1,6 @@
 """Names that left the top level of `mixnerf_eqx`.
 
-Until this release the package re-exported about 130 names flat; they now live in namespaces
+Until this release the package re-exported 127 more names flat; they now live in namespaces
 (`mx.nn`, `mx.training`, ...) and the top level keeps a few (`__init__.pyi`). An old flat name
 still works for this release, with a `DeprecationWarning` that names its new place. Names that
 left the top level in an earlier release are errors that name their new place.
@@ -9,10 +9,54 @@ left the top level in an earlier release are errors that name their new place.
 import importlib
 from typing import Any
 
-# Every public name of these namespaces was at the top level in the previous release; of
-# `mx.runs`, two were.
-NAMESPACES = ("nn", "training", "inference", "uncertainty", "config", "runtime")
-FROM_RUNS = ("CheckpointError", "FolderBusyError")
+# The previous release's top-level names, by the namespace that holds each now.
+FORMERLY_FLAT: dict[str, tuple[str, ...]] = {
+    "nn": (
+        "AbstractField", "AbstractGridEncoding", "AbstractMixture", "AbstractRenderer",
+        "AbstractSampler", "FIELD_BUILDERS", "FieldOutputs", "GridField", "HashEncoding",
+        "HierarchicalSampler", "LaplaceMixture", "LevelOutputs", "MipNeRFField", "RayBundle",
+        "RaySamples", "RenderOutputs", "StratifiedSampler", "TriPlaneEncoding", "VolumeRenderer",
+        "blend_weights", "blur_weights", "build_field", "camera_rays", "composite_rgb",
+        "conical_frustum_moments", "depth_quantile", "expected_depth", "frustum_gaussians",
+        "integrated_positional_encoding", "laplace_log_density", "level_resolutions",
+        "level_scale_weights", "log_transmittance", "pixel_directions", "positional_encoding",
+        "sample_piecewise_constant",
+    ),
+    "training": (
+        "Batch", "DataParallel", "LossInputs", "LossTerm", "LossTerms", "LossWeights", "StepMetrics",
+        "TrainState", "TrainingDiverged", "TrainingRays", "anneal_sample_space", "data_parallel_mesh",
+        "draw_batch", "init_key", "init_train_state", "initialize_distributed",
+        "learning_rate_schedule", "linear_ramp", "loss_fn", "loss_term_names", "loss_terms",
+        "make_occupancy_grid", "make_optimizer", "make_train_step", "occupancy_key",
+        "register_loss_term", "scene_box", "training_rays", "unregister_loss_term", "update_grid",
+    ),
+    "inference": (
+        "OccupancyGrid", "RenderCounts", "Rendered", "Skipping", "ThresholdChoice", "Video",
+        "ViewerCamera", "camera_of_view", "camera_path", "choose_threshold", "empty_grid",
+        "image_metrics", "orbit_path", "preview_image", "psnr_drop_bound", "refresh_occupancy",
+        "render_rays", "render_skipping", "scene_facing", "spiral_path", "threshold_rays",
+        "update_occupancy", "viewer_rays",
+    ),
+    "uncertainty": (
+        "ColourMixture", "IntervalLevels", "Predictive", "PredictiveSummary", "Recalibration",
+        "Sparsification", "TerminationDistribution", "ViewRanking", "calibration_pit",
+        "calibration_report", "collect_mixtures", "coverage_report", "farthest_first",
+        "fit_recalibration", "fit_temperature", "interval_coverage", "predict_rays", "predict_views",
+        "sparsification", "summarise", "world_points", "write_depth_exports",
+    ),
+    "config": (
+        "ScheduleSteps", "SettingWarning", "config_from_dict", "config_names", "config_path",
+        "config_to_dict", "loss_weight", "schedule_steps", "setting_warnings",
+    ),
+    "runtime": (
+        "allocator_in_use", "allocator_library", "enable_compilation_cache", "preload_allocator",
+        "typecheck_enabled",
+    ),
+    "runs": (
+        "CheckpointError", "FolderBusyError",
+    ),
+}
+_PLACES = {name: namespace for namespace, names in FORMERLY_FLAT.items() for name in names}
 # Left the top level earlier: an error naming the new place.
 GONE = {
     **{
@@ -38,14 +82,8 @@ GONE = {
 
 def new_place(name: str) -> str | None:
     """`mixnerf_eqx.<namespace>.<name>` for a name of the previous release's top level."""
-    if name in FROM_RUNS:
-        return f"mixnerf_eqx.runs.{name}"
-    if name.startswith("_"):
-        return None
-    for namespace in NAMESPACES:
-        if name in vars(importlib.import_module(f"mixnerf_eqx.{namespace}")):
-            return f"mixnerf_eqx.{namespace}.{name}"
-    return None
+    namespace = _PLACES.get(name)
+    return None if namespace is None else f"mixnerf_eqx.{namespace}.{name}"
 
 
 def moved_name(name: str) -> tuple[str, Any]:

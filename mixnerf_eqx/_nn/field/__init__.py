@@ -2,6 +2,8 @@
 
 from .base import AbstractField as AbstractField
 from .base import FieldOutputs as FieldOutputs
+from .base import vmap_density as vmap_density
+from .base import vmap_field as vmap_field
 from .grid import AbstractGridEncoding as AbstractGridEncoding
 from .grid import GridField as GridField
 from .grid import HashEncoding as HashEncoding

@@ -36,18 +36,19 @@ class AbstractField(eqx.Module):
     def has_mixture_heads(self) -> bool:
         """Whether the field predicts `beta` and `ray_depth` (needed by the mixture losses)."""
 
+    @abc.abstractmethod
     def regulariser(self) -> Float[Array, ""]:
-        """The field's own term of the training loss, already weighted (0: none)."""
-        return jnp.zeros(())
+        """The field's own term of the training loss, already weighted (`jnp.zeros(())`: none)."""
 
+    @abc.abstractmethod
     def at_step(self, step: Int[Array, ""] | int) -> "AbstractField":
-        """The field as training step `step` (from 1) sees it; the field itself by default.
+        """The field as training step `step` (from 1) sees it.
 
-        A field with a schedule (a grid revealing its levels coarse to fine) returns a copy
-        whose schedule-dependent arrays are set for `step`; the training step calls this
-        before rendering, and stored models keep the fully revealed field.
+        A field without a schedule returns itself. A field with one (a grid revealing its
+        levels coarse to fine) returns a copy whose schedule-dependent arrays are set for
+        `step`; the training step calls this before rendering, and stored models keep the
+        fully revealed field.
         """
-        return self
 
     @abc.abstractmethod
     def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
@@ -57,10 +58,10 @@ class AbstractField(eqx.Module):
         call this, so they pay for the density only.
         """
 
+    @abc.abstractmethod
     def density_batch(self, means: Float[Array, "batch 3"], covs: Float[Array, "batch 3"]) -> Float[Array, " batch"]:
-        """`density` at a batch of Gaussians: `jax.vmap` of it here; a grid field reads its
-        tables with one batched lookup (as `evaluate_batch` does)."""
-        return jax.vmap(self.density)(means, covs)
+        """`density` at a batch of Gaussians, with the same values: `vmap_density(self, ...)`,
+        or one batched lookup of a grid field's tables (as its `evaluate_batch` does)."""
 
     @abc.abstractmethod
     def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
@@ -74,6 +75,7 @@ class AbstractField(eqx.Module):
           evaluation.
         """
 
+    @abc.abstractmethod
     def evaluate_batch(
         self,
         means: Float[Array, "batch 3"],
@@ -81,12 +83,16 @@ class AbstractField(eqx.Module):
         viewdirs: Float[Array, "batch 3"],
         keys: RayKeys | None = None,
     ) -> FieldOutputs:
-        """The field at a flat batch of Gaussians (`keys`: one per point, or `None`).
+        """The field at a flat batch of Gaussians (`keys`: one per point, or `None`), with the
+        values of `__call__`: `vmap_field(self, ...)`, or a formulation that gains from seeing
+        the whole batch (the grid field's batched lookups on a CPU)."""
 
-        `jax.vmap` of `__call__`. A field whose lookups gain from seeing the whole batch (the
-        grid field's batched lookups on a CPU) overrides this with the same values.
-        """
-        return vmap_field(self, means, covs, viewdirs, keys)
+
+def vmap_density(
+    field: AbstractField, means: Float[Array, "batch 3"], covs: Float[Array, "batch 3"]
+) -> Float[Array, " batch"]:
+    """`field.density` lifted to a flat batch of Gaussians by `jax.vmap`."""
+    return jax.vmap(field.density)(means, covs)
 
 
 def vmap_field(

@@ -78,10 +78,10 @@ class AbstractGridEncoding(eqx.Module):
         """The features of a batch of points: `jax.vmap(self)(points)`, computed with
         `weighted_rows` or `plane_product` (the batched formulations of `mixnerf_eqx._nn.field._lookup`)."""
 
+    @abc.abstractmethod
     def total_variation(self) -> Float[Array, ""]:
-        """Mean squared difference of neighbouring grid values, summed over levels (0 if the
-        encoding has no neighbourhood structure to regularise)."""
-        return jnp.zeros(())
+        """Mean squared difference of neighbouring grid values, summed over levels
+        (`jnp.zeros(())` for an encoding without a neighbourhood structure to regularise)."""
 
 
 # Plane `k` of a tri-plane level is sampled at the coordinates (column axis, row axis)
@@ -269,6 +269,9 @@ class HashEncoding(AbstractGridEncoding):
         for level, table in enumerate(self.tables):
             rows.append(weighted_rows(table, *self._corners(level, points)))
         return jnp.stack(rows, axis=1)
+
+    def total_variation(self) -> Float[Array, ""]:
+        return jnp.zeros(())  # hashed entries have no neighbours to regularise
 
 
 def level_scale_weights(

@@ -6,11 +6,11 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
-from ..._custom_types import PRNGKey, Vec3
+from ..._custom_types import PRNGKey, RayKeys, Vec3
 from ..encoding import integrated_positional_encoding, positional_encoding
-from .base import AbstractField, FieldOutputs
+from .base import AbstractField, FieldOutputs, vmap_density, vmap_field
 from .heads import MixtureHeads, apply_dense, dense
 
 
@@ -122,6 +122,25 @@ class MipNeRFField(AbstractField):
 
     def density(self, mean: Vec3, cov: Vec3) -> Float[Array, ""]:
         return self.heads.density(self._trunk(mean, cov)[1])
+
+    def density_batch(self, means: Float[Array, "batch 3"], covs: Float[Array, "batch 3"]) -> Float[Array, " batch"]:
+        return vmap_density(self, means, covs)
+
+    def evaluate_batch(
+        self,
+        means: Float[Array, "batch 3"],
+        covs: Float[Array, "batch 3"],
+        viewdirs: Float[Array, "batch 3"],
+        keys: RayKeys | None = None,
+    ) -> FieldOutputs:
+        return vmap_field(self, means, covs, viewdirs, keys)
+
+    def regulariser(self) -> Float[Array, ""]:
+        return jnp.zeros(())  # the MLP's training has no term of its own
+
+    def at_step(self, step: Int[Array, ""] | int) -> "MipNeRFField":
+        del step
+        return self  # no schedule
 
     def __call__(self, mean: Vec3, cov: Vec3, viewdir: Vec3, *, key: PRNGKey | None = None) -> FieldOutputs:
         hidden, raw_density = self._trunk(mean, cov)
