@@ -50,9 +50,9 @@ class ModelConfig:
     """What every field shares: the samplers, the view encoding, the heads and the choice of
     field; each field's own keys are in its section ([mlp] or [grid])."""
 
-    field: Literal["mlp", "grid"] = (
-        "mlp"  # the mip-NeRF MLP ([mlp], the paper's), or a grid and decoder ([grid])
-    )
+    # A name in `mx.nn.FIELD_BUILDERS`: "mlp", the mip-NeRF MLP ([mlp], the paper's), or "grid",
+    # a grid and decoder ([grid]); checked when the model is built.
+    field: str = "mlp"
     viewdir_max_deg: int = 4  # view-direction frequencies 2^0 .. 2^(viewdir_max_deg-1)
     num_coarse_samples: int = 128  # samples per ray at the coarse level
     num_fine_samples: int = 128  # samples per ray at the fine level
@@ -82,7 +82,9 @@ class MLPConfig:
 class GridConfig:
     """The grid field (`model.field = "grid"`); the samplers and heads stay in [model]."""
 
-    encoding: Literal["triplane", "hash"] = "triplane"  # K-Planes-style planes, or a hash grid
+    # A name in `mx.nn.ENCODING_BUILDERS`: "triplane", K-Planes-style planes, or "hash", a hash
+    # grid; checked when the field is built.
+    encoding: str = "triplane"
     levels: int = 4  # resolutions, growing geometrically from min_resolution to max_resolution
     min_resolution: int = 32  # coarsest level's resolution (plane texels / hash cells per axis)
     max_resolution: int = 256  # finest level's resolution
@@ -525,15 +527,9 @@ def _non_finite(config: "Config") -> list[str]:
 
 
 _TOP_LEVEL = ("name", "reproduces", "chosen_on", "method")
+# Every section of `Config`, by name, in its order: the attributes that are dataclasses.
 _SECTIONS = {
-    "data": DataConfig,
-    "model": ModelConfig,
-    "mlp": MLPConfig,
-    "grid": GridConfig,
-    "loss": LossConfig,
-    "optim": OptimConfig,
-    "train": TrainConfig,
-    "occupancy": OccupancyConfig,
+    field.name: type(field.default) for field in dataclasses.fields(Config) if dataclasses.is_dataclass(field.default)
 }
 
 
@@ -667,7 +663,7 @@ def config_from_dict(
     values = _upgrade(values, source, base, written_by_a_run)
     model = values.get("model")
     field = model.get("field", base.model.field) if isinstance(model, dict) else base.model.field
-    if field != base.model.field and field in FIELD_SECTIONS and base.model.field in FIELD_SECTIONS:
+    if field != base.model.field and base.model.field in FIELD_SECTIONS:
         # Switching the field starts from the defaults of the section it leaves (a grid config
         # extending an MLP config does not inherit the MLP's sizes).
         left = FIELD_SECTIONS[base.model.field]

@@ -22,6 +22,7 @@ from ._nn.field import FieldOutputs as FieldOutputs
 from ._nn.field import GridField as GridField
 from ._nn.field import HashEncoding as HashEncoding
 from ._nn.field import MipNeRFField as MipNeRFField
+from ._nn.field import MixtureHeads as MixtureHeads
 from ._nn.field import TriPlaneEncoding as TriPlaneEncoding
 from ._nn.field import level_resolutions as level_resolutions
 from ._nn.field import level_scale_weights as level_scale_weights
@@ -30,6 +31,7 @@ from ._nn.field import vmap_field as vmap_field
 from ._nn.mixture import AbstractMixture as AbstractMixture
 from ._nn.mixture import LaplaceMixture as LaplaceMixture
 from ._nn.mixture.laplace import laplace_log_density as laplace_log_density
+from ._nn.model import ENCODING_BUILDERS as ENCODING_BUILDERS
 from ._nn.model import FIELD_BUILDERS as FIELD_BUILDERS
 from ._nn.model import MixNeRF as MixNeRF
 from ._nn.model import RenderOutputs as RenderOutputs

@@ -1,15 +1,24 @@
 """Each extension point takes a new part in the places `docs/architecture.md` ("How to add ...")
-lists, and a run trains with it. (A loss term: `tests/test_loss.py`; a field: every field's
-contract in `tests/test_field_contract.py`.)"""
+lists, and a run trains with it: a dataset format, a field, a grid encoding and a command here
+(a loss term: `tests/test_loss.py`; every field's contract: `tests/test_field_contract.py`)."""
 
 import dataclasses
 import json
+import os
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 from helpers import TINY_OVERRIDES
 
 import mixnerf_eqx as mx
+from mixnerf_eqx._util import allocator
 from mixnerf_eqx._config import DataConfig
 from mixnerf_eqx.data import FORMATS, DatasetError, DatasetFormat, procedural
 
@@ -62,3 +71,211 @@ def test_a_new_dataset_format_is_one_record_and_one_registry_entry(monkeypatch, 
     # A name that is no format is one error listing them all, the new one included.
     with pytest.raises(DatasetError, match="unknown dataset format 'toys'.*transforms, toy"):
         mx.data.load_dataset(dataclasses.replace(config.data, dataset="toys"))
+
+
+# The tiny run without the MLP's section (a config whose field is not the MLP may not set it).
+_TINY_WITHOUT_MLP = [o for o in TINY_OVERRIDES if not o.startswith("mlp.")]
+
+
+class ToyField(mx.nn.AbstractField):
+    """The smallest field that trains: a raw density and view features linear in the
+    Gaussian's mean, ending in the shared heads."""
+
+    trunk: eqx.nn.Linear
+    heads: mx.nn.MixtureHeads
+
+    def __init__(self, *, width: int, mixture_heads: bool, key):
+        trunk_key, *head_keys = jax.random.split(key, 4)
+        self.trunk = eqx.nn.Linear(3, 1 + width, key=trunk_key)
+        self.heads = mx.nn.MixtureHeads(
+            width + 3, mixture=mixture_heads, density_noise=0.0, rgb_padding=0.001, keys=tuple(head_keys)
+        )
+
+    @property
+    def has_mixture_heads(self) -> bool:
+        return self.heads.has_mixture
+
+    def regulariser(self):
+        return jnp.zeros(())
+
+    def at_step(self, step):
+        return self
+
+    def density(self, mean, cov):
+        return self.heads.density(self.trunk(mean)[0])
+
+    def density_batch(self, means, covs):
+        return mx.nn.vmap_density(self, means, covs)
+
+    def __call__(self, mean, cov, viewdir, *, key=None):
+        raw = self.trunk(mean)
+        return self.heads(raw[0], jnp.concatenate([jnp.tanh(raw[1:]), viewdir]), key)
+
+    def evaluate_batch(self, means, covs, viewdirs, keys=None):
+        return mx.nn.vmap_field(self, means, covs, viewdirs, keys)
+
+
+def _build_toy_field(config, *, mixture_heads, key, scene_box):
+    del scene_box
+    return ToyField(width=8, mixture_heads=mixture_heads, key=key)
+
+
+def test_a_new_field_is_its_class_and_one_builder_entry(monkeypatch, tmp_path):
+    monkeypatch.setitem(mx.nn.FIELD_BUILDERS, "toy", _build_toy_field)  # the one entry a field adds
+    overrides = [*_TINY_WITHOUT_MLP, 'model.field="toy"', "train.max_steps=2", f"train.run_dir={json.dumps(str(tmp_path))}"]
+    config = mx.load_config("builtin", overrides)
+    result = mx.fit(config, progress=False, write_renders=False)
+    assert int(result.state.step) == 2 and isinstance(result.model.field, ToyField)
+    assert result.model.field.has_mixture_heads  # MixNeRF's heads, so its NLLs trained it
+    assert np.isfinite(json.loads((tmp_path / "metrics.json").read_text())["test"]["psnr"])
+    # The sections of fields it does not use keep their defaults, as for the built-in ones.
+    with pytest.raises(mx.ConfigError, match=r"\[mlp\] does not apply to model.field = 'toy'"):
+        mx.load_config("builtin", ['model.field="toy"', "mlp.width=32"])
+    # A name no builder has is one error listing them, the new one included.
+    bad = mx.load_config("builtin", [*_TINY_WITHOUT_MLP, 'model.field="toys"'])
+    with pytest.raises(mx.ConfigError, match="model.field 'toys' is none of grid, mlp, toy"):
+        mx.build_model(bad, key=jax.random.key(0))
+
+
+class ToyEncoding(mx.nn.AbstractGridEncoding):
+    """A grid encoding without a grid: each level's features are sines of learned projections of
+    the point, at the level's resolution."""
+
+    resolutions: tuple[int, ...] = eqx.field(static=True)
+    projections: tuple[jax.Array, ...]
+
+    def __init__(self, resolutions, features: int, *, key):
+        self.resolutions = tuple(resolutions)
+        keys = jax.random.split(key, len(self.resolutions))
+        self.projections = tuple(jax.random.normal(k, (features, 3)) for k in keys)
+
+    @property
+    def features_per_level(self) -> int:
+        return self.projections[0].shape[0]
+
+    @property
+    def cell_sizes(self) -> tuple[float, ...]:
+        return tuple(2.0 / (res - 1) for res in self.resolutions)
+
+    def __call__(self, point):
+        point = jnp.clip(point, -1.0, 1.0)
+        return jnp.stack([jnp.sin(res * (w @ point)) for res, w in zip(self.resolutions, self.projections, strict=True)])
+
+    def encode_batch(self, points):
+        return jax.vmap(self)(points)
+
+    def total_variation(self):
+        return jnp.zeros(())
+
+
+def test_a_new_grid_encoding_is_its_class_and_one_builder_entry(monkeypatch, tmp_path):
+    # The one entry an encoding adds: its constructor from the [grid] section, the levels'
+    # resolutions and a key.
+    monkeypatch.setitem(
+        mx.nn.ENCODING_BUILDERS, "toy", lambda grid, resolutions, key: ToyEncoding(resolutions, grid.features, key=key)
+    )
+    overrides = [
+        *_TINY_WITHOUT_MLP,
+        'grid.encoding="toy"',
+        "grid.tv_weight=0",  # the built-in grid's TV weight is the tri-plane encoding's key
+        "grid.levels=2",
+        "grid.min_resolution=4",
+        "grid.max_resolution=8",
+        "grid.features=4",
+        "grid.coarse_to_fine_steps=0",
+        "train.max_steps=2",
+        f"train.run_dir={json.dumps(str(tmp_path))}",
+    ]
+    config = mx.load_config("builtin_grid", overrides)
+    result = mx.fit(config, progress=False, write_renders=False)
+    encoding = result.model.field.encoding
+    assert int(result.state.step) == 2 and isinstance(encoding, ToyEncoding)
+    assert encoding.resolutions == (4, 8) and encoding.features_per_level == 4
+    assert np.isfinite(json.loads((tmp_path / "metrics.json").read_text())["test"]["psnr"])
+    # A key that only another encoding reads is an error, as between the built-in ones.
+    with pytest.raises(mx.ConfigError, match="grid.hash_table_log2 = 12 applies to grid.encoding = 'hash' only"):
+        mx.load_config("builtin_grid", ['grid.encoding="toy"', "grid.hash_table_log2=12"])
+    bad = mx.load_config("builtin_grid", [*_TINY_WITHOUT_MLP, 'grid.encoding="toys"', "grid.tv_weight=0"])
+    with pytest.raises(mx.ConfigError, match="grid.encoding 'toys' is none of hash, toy, triplane"):
+        mx.build_model(bad, key=jax.random.key(0))
+
+
+_TOY_COMMAND = """\
+\"\"\"`python -m mixnerf_eqx.toy OUT`: trains the built-in scene two steps into OUT.\"\"\"
+
+import argparse
+
+import mixnerf_eqx as mx
+from .._util.compilation_cache import add_compilation_cache_argument
+from .._util.typecheck import add_typecheck_argument
+from .common import run_command
+
+TINY = {tiny!r}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m mixnerf_eqx.toy")
+    parser.add_argument("out")
+    parser.add_argument("--steps", type=int, default=2)
+    add_compilation_cache_argument(parser)
+    add_typecheck_argument(parser)
+    args = parser.parse_args(argv)
+
+    def body():
+        if args.steps < 1:
+            raise ValueError(f"--steps must be at least 1, got {{args.steps}}")
+        config = mx.load_config("builtin", [*TINY, f"train.max_steps={{args.steps}}", f"train.run_dir={{args.out!r}}"])
+        result = mx.fit(config, progress=False, write_renders=False)
+        print("steps", int(result.state.step))
+
+    return run_command(args, body, interrupted="toy stopped")
+"""
+
+_TOY_ENTRY = """\
+from ._util.entry import command_main
+
+main = command_main("toy", __name__)
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+"""
+
+# Puts the toy's two modules where the package looks for them, names it in `COMMANDS`, and
+# runs it as `python -m mixnerf_eqx.toy` runs an entry module.
+_RUN_TOY = """\
+import runpy, sys
+import mixnerf_eqx, mixnerf_eqx.cli
+from mixnerf_eqx._util import allocator
+mixnerf_eqx.__path__.append(sys.argv[1])
+mixnerf_eqx.cli.__path__.append(sys.argv[1] + "/cli")
+allocator.COMMANDS = (*allocator.COMMANDS, "toy")
+assert allocator._started_as_command(["python", "-m", "mixnerf_eqx.toy"])
+sys.argv = ["toy", *sys.argv[2:]]
+runpy.run_module("mixnerf_eqx.toy", run_name="__main__", alter_sys=True)
+"""
+
+
+def test_a_new_command_is_its_module_its_entry_and_its_name(tmp_path):
+    extra = tmp_path / "extra"
+    (extra / "cli").mkdir(parents=True)
+    (extra / "cli" / "toy.py").write_text(_TOY_COMMAND.format(tiny=[*TINY_OVERRIDES]))
+    (extra / "toy.py").write_text(_TOY_ENTRY)
+    assert not allocator._started_as_command(["python", "-m", "mixnerf_eqx.toy"])  # not named yet
+
+    def toy(*argv):
+        return subprocess.run(
+            [sys.executable, "-c", _RUN_TOY, str(extra), *argv],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        )
+
+    done = toy(str(tmp_path / "run"))
+    assert done.returncode == 0, done.stderr
+    assert "steps 2" in done.stdout
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["test"]["psnr"] > 0
+    # The shared runner makes bad input one line and status 2.
+    refused = toy(str(tmp_path / "other"), "--steps", "0")
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines() == ["error: --steps must be at least 1, got 0"]

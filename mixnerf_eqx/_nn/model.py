@@ -6,6 +6,7 @@ pixels (the renderer). The dense render (`__call__`) and the render that skips e
 (`mixnerf_eqx._inference.skipping`) run the same three steps; the second only evaluates fewer samples.
 """
 
+import dataclasses
 from collections.abc import Callable
 
 import equinox as eqx
@@ -13,10 +14,18 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._config import Config, schedule_steps
+from .._config import Config, ConfigError, GridConfig, schedule_steps
 from .._custom_types import FourKeysPerRay, PRNGKey, RayKeys
 from .budget import SampleBudget, budget_capacity, evaluate_live, transmittance_before
-from .field import AbstractField, FieldOutputs, GridField, HashEncoding, MipNeRFField, TriPlaneEncoding
+from .field import (
+    AbstractField,
+    AbstractGridEncoding,
+    FieldOutputs,
+    GridField,
+    HashEncoding,
+    MipNeRFField,
+    TriPlaneEncoding,
+)
 from .field.grid import level_resolutions
 from .mixture import AbstractMixture, LaplaceMixture
 from .rays import Box, RayBundle, RaySamples, radius_box
@@ -249,33 +258,50 @@ class MixNeRF(eqx.Module):
         return jax.tree_util.tree_map(lambda x: x.reshape(*batch_shape, *x.shape[1:]), outputs)
 
 
-def _mlp_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> MipNeRFField:
-    """The paper's field: the mip-NeRF MLP (`[mlp]`; the view encoding, density bias and colour
-    padding from `[model]`)."""
-    del scene_box  # the MLP's integrated encoding needs no box
-    mlp, model_cfg = config.mlp, config.model
-    return MipNeRFField(
-        width=mlp.width,
-        depth=mlp.depth,
-        view_width=mlp.view_width,
-        skip_layer=mlp.skip_layer,
-        min_deg=mlp.min_deg,
-        max_deg=mlp.max_deg,
-        viewdir_max_deg=model_cfg.viewdir_max_deg,
-        density_noise=mlp.density_noise,
-        density_bias=model_cfg.density_bias,
-        rgb_padding=model_cfg.rgb_padding,
-        mixture_heads=mixture_heads,
-        matmul_dtype=mlp.matmul_dtype,
-        key=key,
+def _from_model_section(config: Config) -> dict[str, object]:
+    """What every field takes from `[model]`: the view encoding, density bias, colour padding."""
+    model = config.model
+    return dict(
+        viewdir_max_deg=model.viewdir_max_deg, density_bias=model.density_bias, rgb_padding=model.rgb_padding
     )
 
 
+def _mlp_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> MipNeRFField:
+    """The paper's field: the mip-NeRF MLP, its `[mlp]` section passed whole (each key is a
+    keyword of `MipNeRFField`) with what `[model]` shares."""
+    del scene_box  # the MLP's integrated encoding needs no box
+    return MipNeRFField(
+        **dataclasses.asdict(config.mlp), **_from_model_section(config), mixture_heads=mixture_heads, key=key
+    )
+
+
+# `config.grid.encoding` -> the encoding's constructor, given the `[grid]` section, the levels'
+# resolutions and a key. A new encoding is its class (an `AbstractGridEncoding`) and one entry
+# here (its own keys, if any, in `GridConfig` and `_config.ENCODING_KEYS`).
+ENCODING_BUILDERS: dict[str, Callable[[GridConfig, tuple[int, ...], PRNGKey], AbstractGridEncoding]] = {
+    "triplane": lambda grid, resolutions, key: TriPlaneEncoding(resolutions, grid.features, key=key),
+    "hash": lambda grid, resolutions, key: HashEncoding(
+        resolutions, grid.features, 2**grid.hash_table_log2, key=key
+    ),
+}
+
+# The `[grid]` keys the builder reads itself (the encoding, the box, the schedule); every other
+# key is a keyword of `GridField`, passed through as it is.
+_GRID_BUILDER_KEYS = frozenset(
+    {"encoding", "levels", "min_resolution", "max_resolution", "features", "hash_table_log2", "box_radius",
+     "coarse_to_fine_steps", "coarse_to_fine_fraction"}
+)
+
+
 def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> GridField:
-    """A grid encoding and a small decoder (`[grid]`; the view encoding, density bias and
-    colour padding from `[model]`). It spans `[-r, r]^3` when `config.grid.box_radius = r > 0`
-    (the scene lies inside; nothing outside), and otherwise `scene_box`."""
-    grid, model_cfg = config.grid, config.model
+    """A grid encoding (`ENCODING_BUILDERS`) and a small decoder, the rest of `[grid]` passed
+    through to `GridField`, with what `[model]` shares. It spans `[-r, r]^3` when
+    `config.grid.box_radius = r > 0` (the scene lies inside; nothing outside), and otherwise
+    `scene_box`."""
+    grid = config.grid
+    encoding_builder = ENCODING_BUILDERS.get(grid.encoding)
+    if encoding_builder is None:
+        raise ConfigError(f"grid.encoding {grid.encoding!r} is none of {', '.join(sorted(ENCODING_BUILDERS))}")
     box = radius_box(grid.box_radius)
     bounded = box is not None
     scene_box = box if bounded else scene_box
@@ -283,34 +309,22 @@ def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box:
         raise ValueError("a grid field with grid.box_radius = 0 needs the scene's box (scene_box)")
     encoding_key, decoder_key = jax.random.split(key)
     resolutions = level_resolutions(grid.levels, grid.min_resolution, grid.max_resolution)
-    if grid.encoding == "triplane":
-        encoding = TriPlaneEncoding(resolutions, grid.features, key=encoding_key)
-    else:
-        encoding = HashEncoding(resolutions, grid.features, 2**grid.hash_table_log2, key=encoding_key)
+    passed = {name: value for name, value in dataclasses.asdict(grid).items() if name not in _GRID_BUILDER_KEYS}
     return GridField(
-        encoding,
+        encoding_builder(grid, resolutions, encoding_key),
         box_min=tuple(float(v) for v in scene_box[0]),
         box_max=tuple(float(v) for v in scene_box[1]),
         bounded=bounded,
-        decoder_width=grid.decoder_width,
-        geo_features=grid.geo_features,
-        view_width=grid.view_width,
-        viewdir_max_deg=model_cfg.viewdir_max_deg,
-        scale_weighting=grid.scale_weighting,
-        tv_weight=grid.tv_weight,
         coarse_to_fine_steps=schedule_steps(config).coarse_to_fine,
-        density_activation=grid.density_activation,
-        density_noise=grid.density_noise,
-        density_bias=model_cfg.density_bias,
-        rgb_padding=model_cfg.rgb_padding,
+        **passed,
+        **_from_model_section(config),
         mixture_heads=mixture_heads,
-        lookup=grid.lookup,
         key=decoder_key,
     )
 
 
-# `config.model.field` -> the constructor of that field. A new field is one entry here (and
-# its name in `ModelConfig.field`, its section in `_config.FIELD_SECTIONS`);
+# `config.model.field` -> the constructor of that field. A new field is its class and one entry
+# here (with a config section of its own if it has settings: `_config.FIELD_SECTIONS`);
 # `tests/test_field_contract.py` then holds it to the contract every field meets.
 FIELD_BUILDERS: dict[str, Callable[..., AbstractField]] = {"mlp": _mlp_field, "grid": _grid_field}
 
@@ -321,7 +335,7 @@ def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -
     `grid.box_radius` spans it)."""
     builder = FIELD_BUILDERS.get(config.model.field)
     if builder is None:
-        raise ValueError(f"model.field {config.model.field!r} is none of {sorted(FIELD_BUILDERS)}")
+        raise ConfigError(f"model.field {config.model.field!r} is none of {', '.join(sorted(FIELD_BUILDERS))}")
     return builder(config, mixture_heads=config.method == "mixnerf", key=key, scene_box=scene_box)
 
 

@@ -10,4 +10,5 @@ from .grid import HashEncoding as HashEncoding
 from .grid import TriPlaneEncoding as TriPlaneEncoding
 from .grid import level_resolutions as level_resolutions
 from .grid import level_scale_weights as level_scale_weights
+from .heads import MixtureHeads as MixtureHeads
 from .mip_mlp import MipNeRFField as MipNeRFField
