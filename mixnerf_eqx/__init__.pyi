@@ -21,7 +21,7 @@ from ._nn.model import MixNeRF as MixNeRF
 from ._nn.model import build_model as build_model
 from ._predictive.distribution import predictive as predictive
 from ._predictive.next_view import next_view as next_view
-from ._train.loop import TrainResult as TrainResult
-from ._train.loop import fit as fit
-from ._train.sweep import plan_sweep as plan_sweep
+from ._runs.loop import TrainResult as TrainResult
+from ._runs.loop import fit as fit
+from ._runs.sweep import plan_sweep as plan_sweep
 from ._util.typecheck import set_typecheck as set_typecheck

@@ -9,16 +9,16 @@ A run folder holds `config.json`, `train_log.jsonl`, `checkpoints/` and, once ev
 `metrics.json` and `renders/`; one process writes it at a time (`hold_folder`).
 """
 
-from ._train.checkpoint import CheckpointError as CheckpointError
-from ._train.checkpoint import latest_checkpoint as latest_checkpoint
-from ._train.checkpoint import load_checkpoint as load_checkpoint
-from ._train.checkpoint import read_checkpoint_meta as read_checkpoint_meta
-from ._train.checkpoint import save_checkpoint as save_checkpoint
-from ._train.run_folder import Run as Run
-from ._train.run_folder import grid_for_rendering as grid_for_rendering
-from ._train.run_folder import make_skipping as make_skipping
-from ._train.run_folder import render_summary as render_summary
-from ._train.run_folder import restore_run as restore_run
-from ._train.run_folder import write_view_renders as write_view_renders
+from ._runs.checkpoint import CheckpointError as CheckpointError
+from ._runs.checkpoint import latest_checkpoint as latest_checkpoint
+from ._runs.checkpoint import load_checkpoint as load_checkpoint
+from ._runs.checkpoint import read_checkpoint_meta as read_checkpoint_meta
+from ._runs.checkpoint import save_checkpoint as save_checkpoint
+from ._runs.run_folder import Run as Run
+from ._runs.run_folder import grid_for_rendering as grid_for_rendering
+from ._runs.run_folder import make_skipping as make_skipping
+from ._runs.run_folder import render_summary as render_summary
+from ._runs.run_folder import restore_run as restore_run
+from ._runs.run_folder import write_view_renders as write_view_renders
 from ._util.lock import FolderBusyError as FolderBusyError
 from ._util.lock import hold_folder as hold_folder

@@ -7,9 +7,9 @@ the training state and its pure step, data-parallel training and sweeps.
     step = mx.training.make_train_step(config)      # (state, batch) -> (state, metrics)
 """
 
-from ._train.loop import TrainResult as TrainResult
-from ._train.loop import TrainingDiverged as TrainingDiverged
-from ._train.loop import fit as fit
+from ._runs.loop import TrainResult as TrainResult
+from ._runs.loop import TrainingDiverged as TrainingDiverged
+from ._runs.loop import fit as fit
 from ._train.loss import LossInputs as LossInputs
 from ._train.loss import LossTerm as LossTerm
 from ._train.loss import LossTerms as LossTerms
@@ -39,4 +39,4 @@ from ._train.state import occupancy_key as occupancy_key
 from ._train.state import scene_box as scene_box
 from ._train.state import training_rays as training_rays
 from ._train.state import update_grid as update_grid
-from ._train.sweep import plan_sweep as plan_sweep
+from ._runs.sweep import plan_sweep as plan_sweep

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from mixnerf_eqx import fit
-from mixnerf_eqx._train import failure as failure_module
-from mixnerf_eqx._train import loop
-from mixnerf_eqx._train.failure import Blank, FailedRunWarning, blank_image, failure, recent_train_psnr
+from mixnerf_eqx._runs import failure as failure_module
+from mixnerf_eqx._runs import loop
+from mixnerf_eqx._runs.failure import Blank, FailedRunWarning, blank_image, failure, recent_train_psnr
 from mixnerf_eqx.data import Dataset, Views
 
 

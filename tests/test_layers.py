@@ -114,9 +114,9 @@ def test_the_check_sees_a_lower_import():
     the module inside a group, and a group's marker imports nothing."""
     listed = [name for layer in documented_layers() for name in layer]
     assert imported_units(PACKAGE / "_nn" / "field" / "base.py", listed) == {"_custom_types.py"}
-    loop = imported_units(PACKAGE / "_train" / "loop.py", listed)
-    assert {"_train/state.py", "_train/sharding.py", "_train/checkpoint.py", "_util/json_io.py"} <= loop
-    assert {"_train/loop.py", "data/", "runs.py", "nn.py", "_util/moved.py"} <= imported_units(
+    loop = imported_units(PACKAGE / "_runs" / "loop.py", listed)
+    assert {"_train/state.py", "_train/sharding.py", "_runs/checkpoint.py", "_util/json_io.py"} <= loop
+    assert {"_runs/loop.py", "data/", "runs.py", "nn.py", "_util/moved.py"} <= imported_units(
         PACKAGE / "__init__.py", listed
     )
     assert {"_util/allocator.py", "_util/typecheck.py"} <= imported_units(PACKAGE / "runtime.py", listed)

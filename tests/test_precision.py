@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mixnerf_eqx._nn.field.mip_mlp import MipNeRFField
-from mixnerf_eqx._train.loop import fit
+from mixnerf_eqx._runs.loop import fit
 
 # One bfloat16 product of a 32-wide layer rounds its inputs and kernel to 8 bits of mantissa
 # (relative 2^-9 each) and accumulates in float32: ~sqrt(32) * 2^-8 of the typical |term|.

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-import mixnerf_eqx._train.loop as train_module
+import mixnerf_eqx._runs.loop as train_module
 from mixnerf_eqx import ConfigError
 from mixnerf_eqx._util.progress import Progress
 
@@ -58,7 +58,7 @@ def _interrupting(function, calls: dict, at: int = 1):
     return interrupted
 
 
-# Where a Ctrl-C lands (a name in `mixnerf_eqx._train.loop` called there) and the step whose
+# Where a Ctrl-C lands (a name in `mixnerf_eqx._runs.loop` called there) and the step whose
 # checkpoint it leaves, one after the other in one run: while the host waits for a step, in a
 # log entry, in the grid update, inside the periodic evaluation's render, and inside a
 # checkpoint write.
@@ -111,7 +111,7 @@ def test_a_ctrl_c_in_the_set_up_before_the_loop_stops_the_run(tiny_scene, tmp_pa
     the run at the loop's first safe point."""
     from helpers import TINY_OVERRIDES
 
-    from mixnerf_eqx._train import loop as _train
+    from mixnerf_eqx._runs import loop as _train
     from mixnerf_eqx.cli import train as train_cli
 
     loaded = []
@@ -244,7 +244,7 @@ def test_an_eval_interrupted_while_it_rewrites_its_folder_changes_nothing(tiny_c
 
 
 def test_a_run_records_its_scene_and_eval_refuses_other_data(tiny_config, tiny_scene, capsys):
-    from mixnerf_eqx._train.run_folder import dataset_fingerprint
+    from mixnerf_eqx._runs.run_folder import dataset_fingerprint
     from mixnerf_eqx.cli import eval as eval_command
     from mixnerf_eqx.data.procedural import make_builtin_scene
 

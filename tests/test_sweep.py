@@ -7,7 +7,7 @@ import pytest
 from helpers import TINY_OVERRIDES
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._train.sweep import aggregate, format_markdown, plan_sweep, published_numbers
+from mixnerf_eqx._runs.sweep import aggregate, format_markdown, plan_sweep, published_numbers
 from mixnerf_eqx.cli import sweep
 from mixnerf_eqx.data import llff
 

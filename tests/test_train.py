@@ -12,7 +12,7 @@ import pytest
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, fit
 from mixnerf_eqx.training import draw_batch, init_train_state, make_train_step, training_rays
-from mixnerf_eqx._train.checkpoint import latest_checkpoint, read_checkpoint_meta
+from mixnerf_eqx._runs.checkpoint import latest_checkpoint, read_checkpoint_meta
 from mixnerf_eqx._train.schedule import anneal_sample_space, learning_rate_schedule, linear_ramp
 from mixnerf_eqx.metrics import psnr
 
@@ -334,7 +334,7 @@ def _tiny_overrides():
 
 def test_resuming_with_another_config_names_the_runs_config_and_counts_the_rest(tmp_path):
     from mixnerf_eqx._config import config_to_dict
-    from mixnerf_eqx._train.run_folder import check_resumable
+    from mixnerf_eqx._runs.run_folder import check_resumable
 
     checkpoint = tmp_path / "run" / "checkpoints" / "step_00000100"
     stored = config_to_dict(mx.load_config("builtin_grid"))

@@ -16,8 +16,8 @@ import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError
 from mixnerf_eqx._nn.budget import AbstractOccupancy, SampleBudget, budget_capacity, evaluate_live, transmittance_before
 from mixnerf_eqx._nn.field import FieldOutputs
-from mixnerf_eqx._train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
-from mixnerf_eqx._train.loop import _Steps
+from mixnerf_eqx._runs.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from mixnerf_eqx._runs.loop import _Steps
 from mixnerf_eqx._train.state import budget_bucket, make_train_step, training_cells
 from mixnerf_eqx.data import load_dataset
 

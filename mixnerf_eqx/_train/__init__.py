@@ -1,1 +1,1 @@
-"""Training: the objective, schedules, the state and step, checkpoints, the loop, sweeps."""
+"""Training: the objective, the schedules, the state and its step, data parallelism."""

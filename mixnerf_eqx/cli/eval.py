@@ -36,7 +36,7 @@ from .._predictive.uncertainty import (
     predict_views,
     write_uncertainty_maps,
 )
-from .._train.run_folder import (
+from .._runs.run_folder import (
     Run,
     dataset_record,
     grid_for_rendering,

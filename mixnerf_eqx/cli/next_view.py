@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .._predictive.next_view import SCORES, check_candidate_poses, farthest_first, next_view
-from .._train.run_folder import restore_run
+from .._runs.run_folder import restore_run
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.typecheck import add_typecheck_argument
 from .common import add_run_arguments, run_command

@@ -20,7 +20,7 @@ import numpy as np
 from .._config import ConfigError
 from .._inference.video import check_destination, render_video
 from .._nn.rays import RayBundle
-from .._train.run_folder import Run, grid_for_rendering, make_skipping, restore_run
+from .._runs.run_folder import Run, grid_for_rendering, make_skipping, restore_run
 from .._util import json_io as strict_json
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.progress import Progress

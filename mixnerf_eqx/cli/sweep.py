@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 
 from .._config import SEED_MAX, ConfigError, load_config, replace_setting
-from .._train.loop import TrainingDiverged
-from .._train.sweep import (
+from .._runs.loop import TrainingDiverged
+from .._runs.sweep import (
     SweepRun,
     aggregate,
     format_markdown,

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from .._config import ConfigError, config_path, load_config, replace_setting
-from .._train.loop import TrainingDiverged, fit
+from .._runs.loop import TrainingDiverged, fit
 from .._util.compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from .._util.interrupt import deferred_interrupts
 from .._util.typecheck import add_typecheck_argument, typecheck_argument

@@ -15,7 +15,7 @@ import time
 from .._inference.viewer import PREVIEW_WIDTHS, Viewer
 from .._predictive.recalibration import METHODS, Recalibration
 from .._predictive.uncertainty import fit_recalibration
-from .._train.run_folder import restore_run
+from .._runs.run_folder import restore_run
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.interrupt import raise_if_interrupted
 from .._util.typecheck import add_typecheck_argument

@@ -52,8 +52,8 @@ from .run_folder import (
     write_view_renders,
 )
 from .failure import FailedRunWarning, blank_image, failure, recent_train_psnr
-from .sharding import DataParallel, data_parallel_mesh
-from .state import (
+from .._train.sharding import DataParallel, data_parallel_mesh
+from .._train.state import (
     StepMetrics,
     budget_bucket,
     TrainState,

@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .state import TrainState
+from .._train.state import TrainState
 
 _PREFIX = "step_"
 

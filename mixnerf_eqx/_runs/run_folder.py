@@ -24,7 +24,7 @@ from .._nn.model import MixNeRF
 from .._util.images import colourise_depth, save_png
 from ..data import Dataset, data_root, load_dataset
 from .checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, load_latest_readable
-from .state import TrainState, init_train_state, make_occupancy_grid
+from .._train.state import TrainState, init_train_state, make_occupancy_grid
 
 _refresh_occupancy = jax.jit(refresh_occupancy)
 
