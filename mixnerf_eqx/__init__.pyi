@@ -14,7 +14,7 @@ from ._config import ConfigError as ConfigError
 from ._config import load_config as load_config
 from ._inference.evaluation import Evaluation as Evaluation
 from ._inference.evaluation import evaluate as evaluate
-from ._inference.evaluation import render_views as render_views
+from ._inference.rendering import render_views as render_views
 from ._inference.video import render_video as render_video
 from ._inference.viewer import Viewer as Viewer
 from ._nn.model import MixNeRF as MixNeRF

@@ -289,7 +289,7 @@ def tiny_grid_config(tmp_path):
 
 
 def test_short_grid_run_learns_and_renders_with_skipping(tiny_grid_config, tiny_scene):
-    # The threshold's calibration (most of a final report's time here) is tested with the MLP
+    # The threshold's choice (most of a final report's time here) is tested with the MLP
     # field in test_occupancy.py; this test is about the grid field behind the occupancy grid.
     config = replace_setting(
         tiny_grid_config, "occupancy", enabled=True, resolution=32, choose_threshold=False

@@ -316,11 +316,11 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     assert a.metrics["render"]["evaluation_reduction"] <= 1.0
     # Skipping may move the held-out PSNR only by what the skipped samples could add.
     assert abs(b.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
-    # The threshold was calibrated on training pixels and within its tolerance there.
-    calibration = render["threshold_choice"]
-    assert calibration["trials"] and calibration["tolerance_db"] == 0.1
-    assert render["density_threshold"] == calibration["threshold"]
-    assert calibration["within_tolerance"] == (calibration["bound_db"] <= 0.1)
+    # The threshold was chosen on training pixels and within its tolerance there.
+    choice = render["threshold_choice"]
+    assert choice["trials"] and choice["tolerance_db"] == 0.1
+    assert render["density_threshold"] == choice["threshold"]
+    assert choice["within_tolerance"] == (choice["bound_db"] <= 0.1)
 
 
 @pytest.mark.parametrize(
@@ -378,7 +378,7 @@ class FoggySphereField(SphereField):
         return jnp.where(inside_box, jnp.maximum(super().density(mean, cov), self.fog), 0.0)
 
 
-def _calibrate_foggy_sphere(tolerance_db):
+def _choose_for_foggy_sphere(tolerance_db):
     foggy = FoggySphereField(centre=jnp.array([0.1, -0.05, 0.0]), inside=jnp.asarray(20.0), radius=0.6)
     model = _sphere_model(foggy, samples=48)
     rays = _camera_rays(size=24)
@@ -400,8 +400,8 @@ def _calibrate_foggy_sphere(tolerance_db):
     return chosen, choice, bound
 
 
-def test_calibration_keeps_the_fog_for_a_tight_tolerance_and_picks_the_largest_threshold():
-    chosen, choice, bound = _calibrate_foggy_sphere(tolerance_db=0.5)
+def test_the_threshold_choice_keeps_the_fog_for_a_tight_tolerance_and_picks_the_largest_threshold():
+    chosen, choice, bound = _choose_for_foggy_sphere(tolerance_db=0.5)
     assert choice.within_tolerance and float(chosen.threshold) == pytest.approx(choice.threshold, rel=1e-7)
     # Removing the fog moves the image all the way to the truth: a 6 dB bound. So the chosen
     # threshold stays below the fog's density, and the next candidate up is above it.
@@ -411,15 +411,15 @@ def test_calibration_keeps_the_fog_for_a_tight_tolerance_and_picks_the_largest_t
     assert len(choice.trials) <= 6  # bisection over 17 candidates
 
 
-def test_calibration_skips_the_fog_but_not_the_sphere_for_a_loose_tolerance():
-    chosen, choice, bound = _calibrate_foggy_sphere(tolerance_db=7.0)
+def test_the_threshold_choice_skips_the_fog_but_not_the_sphere_for_a_loose_tolerance():
+    chosen, choice, bound = _choose_for_foggy_sphere(tolerance_db=7.0)
     assert choice.within_tolerance
     assert 0.02 < choice.threshold < 20.0
     assert bound(choice.threshold) <= 7.0 < bound(32.0)  # skipping the sphere too
     assert choice.reduction > 2.0
 
 
-def test_calibration_rays_are_distinct_training_pixels(tiny_scene):
+def test_threshold_rays_are_distinct_training_pixels(tiny_scene):
     rays, colours = mx.inference.threshold_rays(tiny_scene, 300, key=jax.random.key(3))
     views = tiny_scene.train
     assert rays.batch_shape == (300,) and colours.shape == (300, 3)

@@ -190,9 +190,9 @@ def test_a_ctrl_c_that_python_drops_in_a_gc_callback_is_raised_again():
 def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatch, capsys):
     config = _with(tiny_config, "train", max_steps=2)
     fit_quietly(config, tiny_scene)
-    from mixnerf_eqx._inference import evaluation
+    from mixnerf_eqx._inference import rendering
 
-    original = evaluation._render_dense
+    original = rendering._render_dense
     calls = {"count": 0}
 
     def interrupted(*args):
@@ -201,7 +201,7 @@ def test_ctrl_c_while_rendering_ends_cleanly(tiny_config, tiny_scene, monkeypatc
             signal.raise_signal(signal.SIGINT)
         return original(*args)
 
-    monkeypatch.setattr(evaluation, "_render_dense", interrupted)
+    monkeypatch.setattr(rendering, "_render_dense", interrupted)
     from mixnerf_eqx.cli.eval import main as eval_main
 
     code = eval_main([config.train.run_dir, "--no-progress", "--chunk", "256"])

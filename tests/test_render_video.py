@@ -105,7 +105,7 @@ def test_a_path_for_the_other_kind_of_scene_is_drawn_with_a_warning(tiny_scene):
 
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory):
-    # A small grid for the skipping render, its threshold from the config (no calibration).
+    # A small grid for the skipping render, its threshold from the config (none chosen).
     overrides = [
         "occupancy.resolution=16",
         "occupancy.choose_threshold=false",

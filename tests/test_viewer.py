@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._inference import evaluation
+from mixnerf_eqx._inference import rendering
 from mixnerf_eqx._inference.viewer import (
     MODES,
     PREVIEW_WIDTHS,
@@ -204,7 +204,7 @@ def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeyp
     """Preview widths, window shapes and camera poses all reuse one compiled dense render."""
     model = mx.training.init_train_state(tiny_config, tiny_scene).model
     once = eqx.filter_jit(eqx.debug.assert_max_traces(lambda m, rays: m(rays).fine, max_traces=1))
-    monkeypatch.setattr(evaluation, "_render_dense", once)
+    monkeypatch.setattr(rendering, "_render_dense", once)
     camera = camera_of_view(tiny_scene.train, 0)
     for step, width in enumerate(PREVIEW_WIDTHS[:3]):
         for aspect in (1.0, 1.5, 0.75):

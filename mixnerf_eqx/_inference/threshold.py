@@ -26,7 +26,7 @@ from .._custom_types import PRNGKey
 from .._nn.model import MixNeRF
 from .._nn.rays import RayBundle
 from ..data import Dataset, rays_for_views
-from .evaluation import render_rays
+from .rendering import render_rays
 from .occupancy import OccupancyGrid
 from .skipping import Skipping
 

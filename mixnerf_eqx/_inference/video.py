@@ -22,7 +22,7 @@ from .._nn.rays import RayBundle
 from .._util.images import colourise_depth, save_png, to_uint8
 from ..data import Dataset, rays_at_poses, rays_for_views
 from .camera_path import camera_path
-from .evaluation import render_rays
+from .rendering import render_rays
 from .skipping import Skipping
 
 

@@ -29,7 +29,7 @@ from .._predictive.recalibration import Recalibration
 from .._predictive.uncertainty import predict_rays
 from .._util.images import colourise_depth, to_uint8
 from ..data import Dataset, Views
-from .evaluation import render_rays
+from .rendering import render_rays
 
 # Preview widths in pixels, coarse to fine: a frame is drawn at the first while the camera
 # moves and refined through the others while it is still.

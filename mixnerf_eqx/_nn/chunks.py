@@ -1,6 +1,6 @@
 """A function over many rays in fixed-size chunks: bounded device memory, one compilation.
 
-Rendering (`_inference.evaluation`) and the predictive pass (`_predictive`) both map their
+Rendering (`_inference.rendering`) and the predictive pass (`_predictive`) both map their
 jitted per-chunk work over an image's rays with `map_ray_chunks` and join the host copies with
 `join_chunks`.
 """

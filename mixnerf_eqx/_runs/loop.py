@@ -23,7 +23,8 @@ import jax
 import numpy as np
 
 from .._config import Config, ConfigError, SettingWarning, config_to_dict, setting_warnings
-from .._inference.evaluation import Evaluation, Rendered, evaluate
+from .._inference.evaluation import Evaluation, evaluate
+from .._inference.rendering import Rendered
 from .._nn.model import MixNeRF
 from .._predictive.uncertainty import predict_views
 from .._util import json_io as strict_json

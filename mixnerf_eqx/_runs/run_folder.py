@@ -16,7 +16,7 @@ import numpy as np
 
 from .._config import Config, ConfigError, OccupancyConfig, config_from_dict, config_names, config_to_dict
 from .._custom_types import PRNGKey
-from .._inference.evaluation import Rendered
+from .._inference.rendering import Rendered
 from .._inference.occupancy import OccupancyGrid, refresh_occupancy
 from .._inference.skipping import RenderCounts, Skipping
 from .._inference.threshold import ThresholdChoice, choose_threshold, threshold_rays
@@ -48,18 +48,18 @@ def grid_for_rendering(
     grid: OccupancyGrid | None = None,
 ) -> tuple[OccupancyGrid, ThresholdChoice | None]:
     """`model`'s density evaluated in every cell of `grid` (default: a new grid for `dataset`),
-    with its threshold calibrated when `occupancy.choose_threshold` is on.
+    with its threshold chosen on training pixels when `occupancy.choose_threshold` is on.
 
     **Returns:**
 
-    `(grid, ThresholdChoice)`, the choice `None` when calibration is off.
+    `(grid, ThresholdChoice)`, the choice `None` when no threshold is chosen.
     """
-    refresh_key, calibrate_key = jax.random.split(key)
+    refresh_key, threshold_key = jax.random.split(key)
     grid = make_occupancy_grid(occupancy, dataset) if grid is None else grid
     grid = _refresh_occupancy(grid, model.field, key=refresh_key)
     if not occupancy.choose_threshold:
         return grid, None
-    rays, colours = threshold_rays(dataset, occupancy.threshold_rays, key=calibrate_key)
+    rays, colours = threshold_rays(dataset, occupancy.threshold_rays, key=threshold_key)
     return choose_threshold(
         model,
         grid,
@@ -80,7 +80,7 @@ def render_summary(
     choice: ThresholdChoice | None = None,
 ) -> dict[str, Any]:
     """Per-frame render cost: field evaluations made and needed, and seconds (scoring included),
-    with the grid's threshold and, if it was calibrated, how."""
+    with the grid's threshold and, if it was chosen, how."""
     frames = max(num_views, 1)
     return {
         "skipping": grid is not None,

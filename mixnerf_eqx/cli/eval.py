@@ -25,7 +25,8 @@ import jax
 import numpy as np
 
 from .._config import ConfigError
-from .._inference.evaluation import Rendered, evaluate
+from .._inference.evaluation import evaluate
+from .._inference.rendering import Rendered
 from .._predictive.exports import write_depth_exports
 from .._predictive.recalibration import METHODS, Recalibration
 from .._predictive.uncertainty import (
@@ -130,7 +131,7 @@ def format_table(per_view: list[dict], means: dict) -> str:
 
 
 def _skipping_for(run: Run, mode: str):
-    """The grid, skipping options and calibration choice `--skipping` asks for, and its time."""
+    """The grid, skipping options and threshold choice `--skipping` asks for, and its time."""
     started = time.perf_counter()
     config = run.config
     if not (mode == "on" or (mode == "auto" and config.occupancy.enabled)):
@@ -149,7 +150,7 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
     )
     render = result["render"]
     if grid is not None:
-        how = "calibrated" if choice is not None else "from the config"
+        how = "chosen on training pixels" if choice is not None else "from the config"
         if choice is not None and not choice.within_tolerance:
             how += f", no threshold kept the bound within {choice.tolerance_db} dB"
         print(
