@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import mixnerf_eqx as mx
 from mixnerf_eqx.nn import depth_quantile
 
 
@@ -38,3 +39,104 @@ def test_empty_ray_reports_far_and_batches_under_vmap():
 def test_rejects_bad_quantile():
     with pytest.raises(ValueError, match="quantile"):
         depth_quantile(jnp.ones(4), jnp.linspace(0.0, 1.0, 5), 1.5)
+
+
+def _first_reaching(weights, edges, q):
+    # inf {t : F(t) >= q} by brute force in float64: F on a fine grid inside each interval.
+    masses = weights / weights.sum()
+    before = 0.0
+    for i, mass in enumerate(masses):
+        if before + mass >= q and mass > 0:
+            return edges[i] + (q - before) / mass * (edges[i + 1] - edges[i])
+        before += mass
+    return edges[-1]
+
+
+def test_the_quantile_is_exact_with_empty_and_zero_width_intervals():
+    """The exact inverse of the piecewise-linear distribution function, to float32's resolution:
+    intervals without mass are never answered (the first interval that reaches the level is),
+    a zero-width interval answers its edge, and many levels share one ray under vmap."""
+    rng = np.random.default_rng(3)
+    levels = np.array([1e-6, 0.025, 0.1, 0.25, 0.5, 0.75, 0.9, 0.975, 0.999, 1 - 1e-6])
+    rays_edges, rays_weights = [], []
+    while len(rays_edges) < 200:
+        edges = np.sort(rng.uniform(2.0, 6.0, 33))
+        edges[rng.integers(0, 33, 3)] = edges[rng.integers(0, 33)]  # some zero-width intervals
+        weights = rng.uniform(0.0, 1.0, 32) ** 4 * (rng.uniform(size=32) < 0.6)  # some without mass
+        if weights.sum() > 0:
+            rays_edges.append(np.sort(edges))
+            rays_weights.append(weights)
+    termination = mx.uncertainty.TerminationDistribution(
+        jnp.asarray(np.stack(rays_weights), jnp.float32), jnp.asarray(np.stack(rays_edges), jnp.float32)
+    )
+    got = np.asarray(termination.quantiles(levels), np.float64)  # (levels, rays)
+    want = np.array([[_first_reaching(w, e, q) for w, e in zip(rays_weights, rays_edges)] for q in levels])
+    # Where the distribution function is steep the answer is float32-exact: edges near 6 are
+    # 4.8e-7 apart and the cumulative sum's rounding moves the answer by a few of those.
+    interior = levels <= 0.975
+    assert float(np.max(np.abs(got - want)[interior])) < 1e-5
+    # Everywhere, near the ends too (a level within 1e-6 of 1 can fall in the last interval
+    # with mass, a tiny one, where a rounding of 1e-7 moves the answer far): the answer is the
+    # quantile of a level within 1e-6 of the one asked, F(t - d) <= q + 1e-6 <= F(t + d) + 2e-6.
+    for i, q in enumerate(levels):
+        for w, e, t in zip(rays_weights, rays_edges, got[i], strict=True):
+            assert _cdf(w, e, t - 1e-6) <= q + 1e-6 and _cdf(w, e, t + 1e-6) >= q - 1e-6
+
+
+def _cdf(weights, edges, t):
+    # The float64 distribution function (a zero-width interval's mass counts from its edge on).
+    masses = weights / weights.sum()
+    widths = np.diff(edges)
+    covered = np.where(widths > 0, np.clip((t - edges[:-1]) / np.where(widths > 0, widths, 1.0), 0, 1), t >= edges[:-1])
+    return float(np.sum(masses * covered))
+
+
+def test_the_quantiles_gradient_is_the_implicit_one():
+    """d quantile / d parameters = -(dF/d parameters) / f at the quantile (the implicit function
+    theorem, which the former bisection differentiated), checked against float64 differences."""
+    rng = np.random.default_rng(4)
+    edges = np.sort(rng.uniform(2.0, 6.0, 17))
+    weights = rng.uniform(0.2, 1.0, 16)
+
+    def quantile64(w, e, q=0.3):
+        return _first_reaching(w, e, q)
+
+    grad_w, grad_e = jax.grad(lambda w, e: depth_quantile(w, e, 0.3), argnums=(0, 1))(
+        jnp.asarray(weights, jnp.float32), jnp.asarray(edges, jnp.float32)
+    )
+    step = 1e-6
+    for i in range(16):
+        bump = np.zeros(16)
+        bump[i] = step
+        numeric = (quantile64(weights + bump, edges) - quantile64(weights - bump, edges)) / (2 * step)
+        assert float(grad_w[i]) == pytest.approx(numeric, rel=1e-3, abs=1e-4)
+    for i in range(17):
+        bump = np.zeros(17)
+        bump[i] = step
+        numeric = (quantile64(weights, edges + bump) - quantile64(weights, edges - bump)) / (2 * step)
+        assert float(grad_e[i]) == pytest.approx(numeric, rel=1e-3, abs=1e-4)
+
+
+def test_the_former_tolerance_warns():
+    with pytest.warns(DeprecationWarning, match="tolerance is no longer used"):
+        depth_quantile(jnp.ones(4), jnp.linspace(0.0, 1.0, 5), 0.5, tolerance=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("weights", "edges", "level", "answer"),
+    [
+        # A gap without mass: the level the first interval ends at is answered at its end,
+        # not past the gap (inf {t : F(t) >= q}).
+        ([1.0, 0.0, 1.0], [0.0, 1.0, 2.0, 3.0], 0.5, 1.0),
+        ([1.0, 0.0, 1.0], [0.0, 1.0, 2.0, 3.0], 0.25, 0.5),
+        ([1.0, 0.0, 1.0], [0.0, 1.0, 2.0, 3.0], 0.75, 2.5),
+        # A zero-width interval holding a third of the mass: F jumps there, so every level it
+        # spans is answered at its edge.
+        ([1.0, 1.0, 1.0], [0.0, 1.0, 1.0, 2.0], 0.5, 1.0),
+        ([1.0, 1.0, 1.0], [0.0, 1.0, 1.0, 2.0], 0.625, 1.0),
+        ([1.0, 1.0, 1.0], [0.0, 1.0, 1.0, 2.0], 0.8125, 1.4375),
+    ],
+)
+def test_hand_worked_quantiles_at_gaps_and_jumps(weights, edges, level, answer):
+    value = depth_quantile(jnp.asarray(weights), jnp.asarray(edges), level)
+    assert float(value) == pytest.approx(answer, abs=1e-6)

@@ -3,9 +3,10 @@
 Everything here is a function of arrays: Modules hold parameters and call these.
 """
 
+import warnings
+
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 from jaxtyping import Array, Float
 
 from .._custom_types import RGB, Edges, PerSample, PerSampleRGB, ScalarLike
@@ -112,48 +113,43 @@ def termination_cdf(t: Float[Array, ""], weights: PerSample, t_edges: Edges) -> 
     return jnp.sum(masses * covered)
 
 
-# A bisection halves its bracket each step: after 24 halvings the answer lies within 6e-8 of
-# the bracket's width, float32's resolution for answers at least as large as the bracket
-# (depths bracket themselves within the ray's bounds). The tolerance on the residual is
-# rarely met exactly in float32, so in practice the solves run to this count (in a batch they
-# run until the slowest is done anyway).
-BISECTION_STEPS = 24
-
-
-def termination_quantile(
-    level: ScalarLike, weights: PerSample, t_edges: Edges, *, tolerance: float = 1e-6
-) -> Float[Array, ""]:
+def termination_quantile(level: ScalarLike, weights: PerSample, t_edges: Edges) -> Float[Array, ""]:
     """The `level` quantile of where the ray terminates (0.5: the median depth).
 
-    The termination distance has the piecewise-constant density of `termination_cdf`; its
-    quantile is found by bisection on that CDF, bracketed by the ray's first and last edge
-    (`BISECTION_STEPS` halvings at most). A ray with zero opacity reports its far bound.
-    `level` may be an array (under `jax.vmap`, many levels share one batched solve); it is
-    not checked here (`depth_quantile` checks a number).
+    The termination distance has the piecewise-constant density of `termination_cdf`, so its
+    distribution function is piecewise linear between the edges and the quantile is exact: the
+    first interval whose cumulative mass reaches `level`, entered in proportion to the mass
+    still needed (`inf {t : F(t) >= level}`; a zero-width interval answers its edge). A ray
+    with zero opacity reports its far bound. `level` may be an array (under `jax.vmap`, many
+    levels share one cumulative sum); it is not checked here (`depth_quantile` checks a
+    number). Differentiable in the weights and edges (the interval found is held).
     """
     level = jnp.asarray(level, t_edges.dtype)
-
-    def residual(t, args):
-        level, weights, t_edges = args
-        return termination_cdf(t, weights, t_edges) - level
-
-    solution = optx.root_find(
-        residual,
-        optx.Bisection(rtol=tolerance, atol=tolerance, flip=False),
-        0.5 * (t_edges[0] + t_edges[-1]),
-        args=(level, weights, t_edges),
-        options=dict(lower=t_edges[0], upper=t_edges[-1]),
-        max_steps=BISECTION_STEPS,
-        throw=False,
-    )
-    return jnp.where(jnp.sum(weights) > 0, solution.value, t_edges[-1])
+    total = jnp.sum(weights)
+    masses = weights / jnp.where(total > 0, total, 1.0)
+    reached = jnp.cumsum(masses)  # the distribution function at each interval's far edge
+    count = masses.shape[-1]
+    index = jnp.minimum(jnp.searchsorted(reached, level, side="left"), count - 1)
+    before = jnp.where(index > 0, reached[jnp.maximum(index - 1, 0)], 0.0)
+    mass = masses[index]
+    fraction = jnp.clip((level - before) / jnp.where(mass > 0, mass, 1.0), 0.0, 1.0)
+    fraction = jnp.where(mass > 0, fraction, 1.0)
+    start, width = t_edges[index], t_edges[index + 1] - t_edges[index]
+    return jnp.where(total > 0, start + fraction * width, t_edges[-1])
 
 
 def depth_quantile(
-    weights: PerSample, t_edges: Edges, quantile: ScalarLike = 0.5, *, tolerance: float = 1e-6
+    weights: PerSample, t_edges: Edges, quantile: ScalarLike = 0.5, *, tolerance: float | None = None
 ) -> Float[Array, ""]:
     """The `quantile` (a number in (0, 1)) of where the ray terminates: `termination_quantile`
-    with its level checked."""
+    with its level checked. `tolerance` belonged to the former bisection: the quantile is now
+    exact, and giving one warns (it goes in the next release)."""
+    if tolerance is not None:
+        warnings.warn(
+            "depth_quantile's tolerance is no longer used (the quantile is exact); leave it out",
+            DeprecationWarning,
+            stacklevel=2,
+        )
     if not 0.0 < quantile < 1.0:
         raise ValueError(f"quantile must lie in (0, 1), got {quantile}")
-    return termination_quantile(quantile, weights, t_edges, tolerance=tolerance)
+    return termination_quantile(quantile, weights, t_edges)
