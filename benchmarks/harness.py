@@ -387,7 +387,7 @@ class TrainingRun:
         if self.state.grid is None:
             return None
         key = mx.training.occupancy_key(self.state.key, self.step + 1)
-        occupancy = dataclasses.replace(self.config.occupancy, calibrate=False)
+        occupancy = dataclasses.replace(self.config.occupancy, choose_threshold=False)
         grid, _ = mx.runs.grid_for_rendering(
             occupancy, self.dataset, self.model, key=key, grid=self.state.grid
         )

@@ -10,8 +10,9 @@ for the model is decided where the model is built (`mixnerf_eqx._nn.model.build_
 """
 
 import dataclasses
-import math
+import difflib
 import importlib.resources
+import math
 import tomllib
 import types
 import typing
@@ -381,6 +382,13 @@ FIELD_SECTIONS = {"mlp": "mlp", "grid": "grid"}
 ENCODING_KEYS = {"hash_table_log2": "hash", "tv_weight": "triplane"}
 
 
+def _misspelt(value: str, names) -> str:
+    """` (did you mean 'x'?)` where `value` is close to one of `names` but none of them; the
+    config knows the built-in names only (the model's tables are checked when it is built)."""
+    close = [] if value in names else difflib.get_close_matches(value, list(names), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def _inapplicable(config: "Config") -> list[str]:
     """The keys set in the section of a field that `model.field` does not choose, and the grid
     keys set for an encoding that does not read them."""
@@ -389,9 +397,11 @@ def _inapplicable(config: "Config") -> list[str]:
         grid, defaults = config.grid, GridConfig()
         for name, encoding in ENCODING_KEYS.items():
             if grid.encoding != encoding and getattr(grid, name) != getattr(defaults, name):
+                value, default = getattr(grid, name), getattr(defaults, name)
+                hint = _misspelt(grid.encoding, set(ENCODING_KEYS.values()))
                 problems.append(
-                    f"grid.{name} = {getattr(grid, name)!r} applies to grid.encoding = {encoding!r} only, and "
-                    f"this config uses {grid.encoding!r}: remove it (or set it to {getattr(defaults, name)!r})"
+                    f"grid.{name} = {value!r} applies to grid.encoding = {encoding!r} only, and this config "
+                    f"uses {grid.encoding!r}{hint}: remove it (or set it to {default!r})"
                 )
     for field, section in FIELD_SECTIONS.items():
         if field == config.model.field:
@@ -403,7 +413,8 @@ def _inapplicable(config: "Config") -> list[str]:
         if changed:
             listed = ", ".join(f"{section}.{name} = {getattr(values, name)!r}" for name in changed)
             problems.append(
-                f"{listed}: [{section}] does not apply to model.field = {config.model.field!r}; remove "
+                f"{listed}: [{section}] does not apply to model.field = {config.model.field!r}"
+                f"{_misspelt(config.model.field, FIELD_SECTIONS)}; remove "
                 f"{'it' if len(changed) == 1 else 'them'}, or set model.field = {field!r} (a config that "
                 "sets model.field starts the other fields' sections from their defaults)"
             )
@@ -529,7 +540,9 @@ def _non_finite(config: "Config") -> list[str]:
 _TOP_LEVEL = ("name", "reproduces", "chosen_on", "method")
 # Every section of `Config`, by name, in its order: the attributes that are dataclasses.
 _SECTIONS = {
-    field.name: type(field.default) for field in dataclasses.fields(Config) if dataclasses.is_dataclass(field.default)
+    field.name: type(field.default)
+    for field in dataclasses.fields(Config)
+    if dataclasses.is_dataclass(field.default)
 }
 
 

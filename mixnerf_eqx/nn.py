@@ -37,6 +37,7 @@ from ._nn.model import MixNeRF as MixNeRF
 from ._nn.model import RenderOutputs as RenderOutputs
 from ._nn.model import build_field as build_field
 from ._nn.model import build_model as build_model
+from ._nn.model import check_model_names as check_model_names
 from ._nn.rays import RayBundle as RayBundle
 from ._nn.rays import RaySamples as RaySamples
 from ._nn.rays import camera_rays as camera_rays

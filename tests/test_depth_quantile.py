@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import mixnerf_eqx as mx
+from mixnerf_eqx._nn.compositing import termination_quantile
 from mixnerf_eqx.nn import depth_quantile
 
 
@@ -70,7 +71,9 @@ def test_the_quantile_is_exact_with_empty_and_zero_width_intervals():
         jnp.asarray(np.stack(rays_weights), jnp.float32), jnp.asarray(np.stack(rays_edges), jnp.float32)
     )
     got = np.asarray(termination.quantiles(levels), np.float64)  # (levels, rays)
-    want = np.array([[_first_reaching(w, e, q) for w, e in zip(rays_weights, rays_edges)] for q in levels])
+    want = np.array(
+        [[_first_reaching(w, e, q) for w, e in zip(rays_weights, rays_edges, strict=True)] for q in levels]
+    )
     # Where the distribution function is steep the answer is float32-exact: edges near 6 are
     # 4.8e-7 apart and the cumulative sum's rounding moves the answer by a few of those.
     interior = levels <= 0.975
@@ -87,7 +90,8 @@ def _cdf(weights, edges, t):
     # The float64 distribution function (a zero-width interval's mass counts from its edge on).
     masses = weights / weights.sum()
     widths = np.diff(edges)
-    covered = np.where(widths > 0, np.clip((t - edges[:-1]) / np.where(widths > 0, widths, 1.0), 0, 1), t >= edges[:-1])
+    inside = np.clip((t - edges[:-1]) / np.where(widths > 0, widths, 1.0), 0, 1)
+    covered = np.where(widths > 0, inside, t >= edges[:-1])
     return float(np.sum(masses * covered))
 
 
@@ -118,8 +122,31 @@ def test_the_quantiles_gradient_is_the_implicit_one():
 
 
 def test_the_former_tolerance_warns():
-    with pytest.warns(DeprecationWarning, match="tolerance is no longer used"):
+    # A FutureWarning: shown by default wherever it is raised from (the shape-check wrapper
+    # stands between the caller and the function).
+    with pytest.warns(FutureWarning, match="tolerance is no longer used"):
         depth_quantile(jnp.ones(4), jnp.linspace(0.0, 1.0, 5), 0.5, tolerance=1e-6)
+
+
+def test_a_level_near_one_stays_within_the_mass():
+    """Trailing intervals without mass are never answered, however near 1 the level: the
+    cumulative sum is normalised by its own end, so it reaches exactly 1 at the last mass."""
+    rng = np.random.default_rng(5)
+    worst = 0.0
+    for _ in range(300):
+        weights = np.concatenate([rng.uniform(0.0, 1.0, 40), np.zeros(88)])
+        edges = np.linspace(2.0, 6.0, 129)
+        value = depth_quantile(jnp.asarray(weights, jnp.float32), jnp.asarray(edges, jnp.float32), 1 - 1e-7)
+        worst = max(worst, float(value))
+    assert worst <= edges[40] + 1e-5  # the last interval with mass ends at 3.25
+
+
+def test_a_level_of_zero_is_the_first_edge():
+    """F is 0 up to the first mass, so inf {t : F(t) >= 0} is the first edge; a tiny level
+    lands just inside the first interval with mass."""
+    weights, edges = jnp.asarray([0.0, 0.0, 1.0, 1.0]), jnp.linspace(0.0, 4.0, 5)
+    assert float(termination_quantile(0.0, weights, edges)) == 0.0
+    assert float(depth_quantile(weights, edges, 1e-6)) == pytest.approx(2.0, abs=1e-5)
 
 
 @pytest.mark.parametrize(

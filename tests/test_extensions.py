@@ -17,8 +17,8 @@ import pytest
 from helpers import TINY_OVERRIDES
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._util import allocator
 from mixnerf_eqx._config import DataConfig
+from mixnerf_eqx._util import allocator
 from mixnerf_eqx.data import FORMATS, DatasetError, DatasetFormat, procedural
 
 
@@ -121,7 +121,12 @@ def _build_toy_field(config, *, mixture_heads, key, scene_box):
 
 def test_a_new_field_is_its_class_and_one_builder_entry(monkeypatch, tmp_path):
     monkeypatch.setitem(mx.nn.FIELD_BUILDERS, "toy", _build_toy_field)  # the one entry a field adds
-    overrides = [*_TINY_WITHOUT_MLP, 'model.field="toy"', "train.max_steps=2", f"train.run_dir={json.dumps(str(tmp_path))}"]
+    overrides = [
+        *_TINY_WITHOUT_MLP,
+        'model.field="toy"',
+        "train.max_steps=2",
+        f"train.run_dir={json.dumps(str(tmp_path))}",
+    ]
     config = mx.load_config("builtin", overrides)
     result = mx.fit(config, progress=False, write_renders=False)
     assert int(result.state.step) == 2 and isinstance(result.model.field, ToyField)
@@ -131,9 +136,17 @@ def test_a_new_field_is_its_class_and_one_builder_entry(monkeypatch, tmp_path):
     with pytest.raises(mx.ConfigError, match=r"\[mlp\] does not apply to model.field = 'toy'"):
         mx.load_config("builtin", ['model.field="toy"', "mlp.width=32"])
     # A name no builder has is one error listing them, the new one included.
-    bad = mx.load_config("builtin", [*_TINY_WITHOUT_MLP, 'model.field="toys"'])
-    with pytest.raises(mx.ConfigError, match="model.field 'toys' is none of grid, mlp, toy"):
+    bad_run = f"train.run_dir={json.dumps(str(tmp_path / 'bad'))}"
+    bad = mx.load_config("builtin", [*_TINY_WITHOUT_MLP, 'model.field="toys"', bad_run])
+    named = r"model.field = 'toys' is none of grid, mlp, toy \(did you mean 'toy'\?\)"
+    with pytest.raises(mx.ConfigError, match=named):
         mx.build_model(bad, key=jax.random.key(0))
+    # fit and sweeps refuse it before they load or write anything.
+    with pytest.raises(mx.ConfigError, match=named):
+        mx.fit(bad, progress=False)
+    assert not (tmp_path / "bad").exists()
+    with pytest.raises(mx.ConfigError, match=named):
+        mx.plan_sweep(bad, tmp_path / "sweep", seeds=(0, 1))
 
 
 class ToyEncoding(mx.nn.AbstractGridEncoding):
@@ -158,7 +171,8 @@ class ToyEncoding(mx.nn.AbstractGridEncoding):
 
     def __call__(self, point):
         point = jnp.clip(point, -1.0, 1.0)
-        return jnp.stack([jnp.sin(res * (w @ point)) for res, w in zip(self.resolutions, self.projections, strict=True)])
+        levels = zip(self.resolutions, self.projections, strict=True)
+        return jnp.stack([jnp.sin(res * (w @ point)) for res, w in levels])
 
     def encode_batch(self, points):
         return jax.vmap(self)(points)
@@ -170,9 +184,10 @@ class ToyEncoding(mx.nn.AbstractGridEncoding):
 def test_a_new_grid_encoding_is_its_class_and_one_builder_entry(monkeypatch, tmp_path):
     # The one entry an encoding adds: its constructor from the [grid] section, the levels'
     # resolutions and a key.
-    monkeypatch.setitem(
-        mx.nn.ENCODING_BUILDERS, "toy", lambda grid, resolutions, key: ToyEncoding(resolutions, grid.features, key=key)
-    )
+    def build_toy(grid, resolutions, key):
+        return ToyEncoding(resolutions, grid.features, key=key)
+
+    monkeypatch.setitem(mx.nn.ENCODING_BUILDERS, "toy", build_toy)
     overrides = [
         *_TINY_WITHOUT_MLP,
         'grid.encoding="toy"',
@@ -192,10 +207,12 @@ def test_a_new_grid_encoding_is_its_class_and_one_builder_entry(monkeypatch, tmp
     assert encoding.resolutions == (4, 8) and encoding.features_per_level == 4
     assert np.isfinite(json.loads((tmp_path / "metrics.json").read_text())["test"]["psnr"])
     # A key that only another encoding reads is an error, as between the built-in ones.
-    with pytest.raises(mx.ConfigError, match="grid.hash_table_log2 = 12 applies to grid.encoding = 'hash' only"):
+    only_hash = "grid.hash_table_log2 = 12 applies to grid.encoding = 'hash' only"
+    with pytest.raises(mx.ConfigError, match=only_hash):
         mx.load_config("builtin_grid", ['grid.encoding="toy"', "grid.hash_table_log2=12"])
     bad = mx.load_config("builtin_grid", [*_TINY_WITHOUT_MLP, 'grid.encoding="toys"', "grid.tv_weight=0"])
-    with pytest.raises(mx.ConfigError, match="grid.encoding 'toys' is none of hash, toy, triplane"):
+    named = r"grid.encoding = 'toys' is none of hash, toy, triplane \(did you mean 'toy'\?\)"
+    with pytest.raises(mx.ConfigError, match=named):
         mx.build_model(bad, key=jax.random.key(0))
 
 
@@ -223,7 +240,8 @@ def main(argv=None) -> int:
     def body():
         if args.steps < 1:
             raise ValueError(f"--steps must be at least 1, got {{args.steps}}")
-        config = mx.load_config("builtin", [*TINY, f"train.max_steps={{args.steps}}", f"train.run_dir={{args.out!r}}"])
+        overrides = [*TINY, f"train.max_steps={{args.steps}}", f"train.run_dir={{args.out!r}}"]
+        config = mx.load_config("builtin", overrides)
         result = mx.fit(config, progress=False, write_renders=False)
         print("steps", int(result.state.step))
 
@@ -278,3 +296,36 @@ def test_a_new_command_is_its_module_its_entry_and_its_name(tmp_path):
     refused = toy(str(tmp_path / "other"), "--steps", "0")
     assert refused.returncode == 2
     assert refused.stderr.strip().splitlines() == ["error: --steps must be at least 1, got 0"]
+
+
+def test_a_misspelt_field_or_encoding_is_one_line_before_anything_is_written(tmp_path, capsys):
+    """The config cannot list the model's names; the train command checks them right after
+    loading it, with the closest name, and creates nothing."""
+    from mixnerf_eqx.cli.train import main as train_main
+
+    run_dir = tmp_path / "run"
+    for config, overrides, said in (
+        (
+            "builtin_grid",
+            ['model.field="gird"'],
+            "model.field = 'gird' is none of grid, mlp (did you mean 'grid'?)",
+        ),
+        (
+            "builtin",
+            ['model.field="grid"', 'grid.encoding="tripane"'],
+            "grid.encoding = 'tripane' is none of hash, triplane (did you mean 'triplane'?)",
+        ),
+        # A key of the encoding it was meant to be is refused first, when the config loads,
+        # with the same hint.
+        (
+            "builtin_grid",
+            ['grid.encoding="tripane"'],
+            "override 'grid.encoding=\"tripane\"': grid.tv_weight = 0.5 applies to grid.encoding = "
+            "'triplane' only, and this config uses 'tripane' (did you mean 'triplane'?): remove it (or set "
+            "it to 0.0)",
+        ),
+    ):
+        code = train_main(["--config", config, "--run-dir", str(run_dir), "--no-progress", *overrides])
+        assert code == 2
+        assert capsys.readouterr().err.strip().splitlines() == [f"error: {said}"]
+        assert not run_dir.exists()

@@ -216,7 +216,7 @@ def test_a_field_without_a_builder_is_refused():
     config = mx.load_config("builtin", SMALL_MLP)
     removed = mx.nn.FIELD_BUILDERS.pop("mlp")
     try:
-        with pytest.raises(ValueError, match="model.field 'mlp' is none of"):
+        with pytest.raises(ValueError, match="model.field = 'mlp' is none of grid"):
             build_field(config, key=jax.random.key(0))
     finally:
         mx.nn.FIELD_BUILDERS["mlp"] = removed

@@ -153,4 +153,5 @@ def test_no_import_runs_back_up_between_folders():
             folder(file) for file in imported_files(path) if folder(file) != folder(path)
         )
     order = list(graphlib.TopologicalSorter(graph).static_order())  # CycleError on a cycle
-    assert order.index("_nn") < order.index("_predictive") < order.index("_inference") < order.index("_train")
+    assert order.index("_nn") < order.index("_predictive") < order.index("_inference") < order.index("_runs")
+    assert order.index("_train") < order.index("_runs")

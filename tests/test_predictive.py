@@ -263,8 +263,8 @@ def test_termination_distance_matches_the_piecewise_linear_inverse():
     for level in (0.05, 0.5, 0.95):
         got = np.asarray(quantiles[level])
         for ray in range(5):
-            # The exact inverse; the answer is within the solver's tolerance of it (a steep
-            # interval makes a mass check in float32 meaningless, so the check is on the depth).
+            # The exact inverse, to float32's rounding of the cumulative sum (a steep interval
+            # makes a mass check in float32 meaningless, so the check is on the depth).
             assert abs(got[ray] - np.interp(level, cumulative[ray], edges[ray])) < 1e-5
     centres = 0.5 * (edges[:, 1:] + edges[:, :-1])
     widths = edges[:, 1:] - edges[:, :-1]

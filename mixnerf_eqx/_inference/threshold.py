@@ -26,8 +26,8 @@ from .._custom_types import PRNGKey
 from .._nn.model import MixNeRF
 from .._nn.rays import RayBundle
 from ..data import Dataset, rays_for_views
-from .rendering import render_rays
 from .occupancy import OccupancyGrid
+from .rendering import render_rays
 from .skipping import Skipping
 
 

@@ -125,15 +125,19 @@ def termination_quantile(level: ScalarLike, weights: PerSample, t_edges: Edges) 
     number). Differentiable in the weights and edges (the interval found is held).
     """
     level = jnp.asarray(level, t_edges.dtype)
-    total = jnp.sum(weights)
-    masses = weights / jnp.where(total > 0, total, 1.0)
-    reached = jnp.cumsum(masses)  # the distribution function at each interval's far edge
-    count = masses.shape[-1]
+    # The distribution function at each interval's far edge, normalised by its own last value
+    # so that it ends at exactly 1 (a normalised cumulative sum can end just below it, and a
+    # level above that would land past the last interval with mass).
+    cumulative = jnp.cumsum(weights)
+    total = cumulative[-1]
+    reached = cumulative / jnp.where(total > 0, total, 1.0)
+    count = weights.shape[-1]
     index = jnp.minimum(jnp.searchsorted(reached, level, side="left"), count - 1)
     before = jnp.where(index > 0, reached[jnp.maximum(index - 1, 0)], 0.0)
-    mass = masses[index]
-    fraction = jnp.clip((level - before) / jnp.where(mass > 0, mass, 1.0), 0.0, 1.0)
-    fraction = jnp.where(mass > 0, fraction, 1.0)
+    # The mass the search saw; zero only where a level of 0 meets leading intervals without
+    # mass, answered at the first edge (F is 0 up to the first mass).
+    mass = reached[index] - before
+    fraction = jnp.where(mass > 0, jnp.clip((level - before) / jnp.where(mass > 0, mass, 1.0), 0.0, 1.0), 0.0)
     start, width = t_edges[index], t_edges[index + 1] - t_edges[index]
     return jnp.where(total > 0, start + fraction * width, t_edges[-1])
 
@@ -147,7 +151,7 @@ def depth_quantile(
     if tolerance is not None:
         warnings.warn(
             "depth_quantile's tolerance is no longer used (the quantile is exact); leave it out",
-            DeprecationWarning,
+            FutureWarning,
             stacklevel=2,
         )
     if not 0.0 < quantile < 1.0:

@@ -7,6 +7,8 @@ pixels (the renderer). The dense render (`__call__`) and the render that skips e
 """
 
 import dataclasses
+import difflib
+import inspect
 from collections.abc import Callable
 
 import equinox as eqx
@@ -285,12 +287,13 @@ ENCODING_BUILDERS: dict[str, Callable[[GridConfig, tuple[int, ...], PRNGKey], Ab
     ),
 }
 
-# The `[grid]` keys the builder reads itself (the encoding, the box, the schedule); every other
-# key is a keyword of `GridField`, passed through as it is.
-_GRID_BUILDER_KEYS = frozenset(
-    {"encoding", "levels", "min_resolution", "max_resolution", "features", "hash_table_log2", "box_radius",
-     "coarse_to_fine_steps", "coarse_to_fine_fraction"}
-)
+# The `[grid]` keys passed to `GridField` as they are: its keywords, less those the builder
+# sets itself (the encoding, the box, the schedule) or takes from `[model]`. A `[grid]` key
+# that is not one of them is read by the builder or by an encoding's entry above.
+_GRID_FIELD_KEYS = frozenset(inspect.signature(GridField.__init__).parameters) - {
+    "self", "encoding", "box_min", "box_max", "bounded", "coarse_to_fine_steps", "viewdir_max_deg",
+    "density_bias", "rgb_padding", "mixture_heads", "key",
+}
 
 
 def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box: Box | None) -> GridField:
@@ -299,9 +302,8 @@ def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box:
     `config.grid.box_radius = r > 0` (the scene lies inside; nothing outside), and otherwise
     `scene_box`."""
     grid = config.grid
-    encoding_builder = ENCODING_BUILDERS.get(grid.encoding)
-    if encoding_builder is None:
-        raise ConfigError(f"grid.encoding {grid.encoding!r} is none of {', '.join(sorted(ENCODING_BUILDERS))}")
+    check_model_names(config)
+    encoding_builder = ENCODING_BUILDERS[grid.encoding]
     box = radius_box(grid.box_radius)
     bounded = box is not None
     scene_box = box if bounded else scene_box
@@ -309,7 +311,7 @@ def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box:
         raise ValueError("a grid field with grid.box_radius = 0 needs the scene's box (scene_box)")
     encoding_key, decoder_key = jax.random.split(key)
     resolutions = level_resolutions(grid.levels, grid.min_resolution, grid.max_resolution)
-    passed = {name: value for name, value in dataclasses.asdict(grid).items() if name not in _GRID_BUILDER_KEYS}
+    passed = {name: value for name, value in dataclasses.asdict(grid).items() if name in _GRID_FIELD_KEYS}
     return GridField(
         encoding_builder(grid, resolutions, encoding_key),
         box_min=tuple(float(v) for v in scene_box[0]),
@@ -329,13 +331,29 @@ def _grid_field(config: Config, *, mixture_heads: bool, key: PRNGKey, scene_box:
 FIELD_BUILDERS: dict[str, Callable[..., AbstractField]] = {"mlp": _mlp_field, "grid": _grid_field}
 
 
+def _unknown(key: str, value: str, known: dict[str, object]) -> str:
+    close = difflib.get_close_matches(value, list(known), n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"{key} = {value!r} is none of {', '.join(sorted(known))}{hint}"
+
+
+def check_model_names(config: Config) -> None:
+    """Raises a `ConfigError` if `model.field` names no entry of `FIELD_BUILDERS` or, for the
+    grid field, `grid.encoding` none of `ENCODING_BUILDERS`. The config does not list the names
+    (it imports no model), so `fit`, sweeps and the commands call this before they load or
+    write anything."""
+    if config.model.field not in FIELD_BUILDERS:
+        raise ConfigError(_unknown("model.field", config.model.field, FIELD_BUILDERS))
+    if config.model.field == "grid" and config.grid.encoding not in ENCODING_BUILDERS:
+        raise ConfigError(_unknown("grid.encoding", config.grid.encoding, ENCODING_BUILDERS))
+
+
 def build_field(config: Config, *, key: PRNGKey, scene_box: Box | None = None) -> AbstractField:
     """The field `config.model.field` names (`FIELD_BUILDERS`), with mixture heads for
     MixNeRF; `scene_box` is the training frusta's box (a grid field without
     `grid.box_radius` spans it)."""
-    builder = FIELD_BUILDERS.get(config.model.field)
-    if builder is None:
-        raise ConfigError(f"model.field {config.model.field!r} is none of {', '.join(sorted(FIELD_BUILDERS))}")
+    check_model_names(config)
+    builder = FIELD_BUILDERS[config.model.field]
     return builder(config, mixture_heads=config.method == "mixnerf", key=key, scene_box=scene_box)
 
 

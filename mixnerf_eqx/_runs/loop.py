@@ -25,8 +25,22 @@ import numpy as np
 from .._config import Config, ConfigError, SettingWarning, config_to_dict, setting_warnings
 from .._inference.evaluation import Evaluation, evaluate
 from .._inference.rendering import Rendered
-from .._nn.model import MixNeRF
+from .._nn.model import MixNeRF, check_model_names
 from .._predictive.uncertainty import predict_views
+from .._train.sharding import DataParallel, data_parallel_mesh
+from .._train.state import (
+    StepMetrics,
+    TrainState,
+    budget_bucket,
+    draw_batch,
+    init_train_state,
+    make_live_counter,
+    make_train_step,
+    occupancy_key,
+    training_cells,
+    training_rays,
+    update_grid,
+)
 from .._util import json_io as strict_json
 from .._util.images import colourise_depth
 from .._util.interrupt import deferred_interrupts, raise_if_interrupted, redeliver_dropped_interrupts
@@ -41,6 +55,7 @@ from .checkpoint import (
     remove_stale_staging,
     save_checkpoint,
 )
+from .failure import FailedRunWarning, blank_image, failure, recent_train_psnr
 from .run_folder import (
     DATASET_RECORD,
     check_dataset,
@@ -51,21 +66,6 @@ from .run_folder import (
     make_skipping,
     render_summary,
     write_view_renders,
-)
-from .failure import FailedRunWarning, blank_image, failure, recent_train_psnr
-from .._train.sharding import DataParallel, data_parallel_mesh
-from .._train.state import (
-    StepMetrics,
-    budget_bucket,
-    TrainState,
-    draw_batch,
-    init_train_state,
-    make_live_counter,
-    make_train_step,
-    occupancy_key,
-    training_cells,
-    training_rays,
-    update_grid,
 )
 
 
@@ -532,6 +532,7 @@ def fit(
 
     A `TrainResult` with the final test metrics (also written to `metrics.json`).
     """
+    check_model_names(config)  # a name the config cannot check, before anything is loaded or written
     for message in setting_warnings(config):
         warnings.warn(message, SettingWarning, stacklevel=2)
     # A Ctrl-C that lands in a garbage-collection callback stops the run all the same.

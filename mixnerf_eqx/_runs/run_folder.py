@@ -16,15 +16,15 @@ import numpy as np
 
 from .._config import Config, ConfigError, OccupancyConfig, config_from_dict, config_names, config_to_dict
 from .._custom_types import PRNGKey
-from .._inference.rendering import Rendered
 from .._inference.occupancy import OccupancyGrid, refresh_occupancy
+from .._inference.rendering import Rendered
 from .._inference.skipping import RenderCounts, Skipping
 from .._inference.threshold import ThresholdChoice, choose_threshold, threshold_rays
 from .._nn.model import MixNeRF
+from .._train.state import TrainState, init_train_state, make_occupancy_grid
 from .._util.images import colourise_depth, save_png
 from ..data import Dataset, data_root, load_dataset
 from .checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, load_latest_readable
-from .._train.state import TrainState, init_train_state, make_occupancy_grid
 
 _refresh_occupancy = jax.jit(refresh_occupancy)
 

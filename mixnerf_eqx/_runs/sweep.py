@@ -18,10 +18,12 @@ from typing import Any
 import numpy as np
 
 from .._config import Config, ConfigError, config_from_dict
+from .._nn.model import check_model_names
 from .._util import json_io as strict_json
 from ..data import FORMATS
 from .checkpoint import CheckpointError, latest_checkpoint, read_checkpoint_meta
 from .run_folder import check_resumable, continued_config
+
 
 def _known_scenes(dataset: str) -> tuple[str, ...]:
     """The scenes whose mean a paper's table reports for `dataset` (its format's own list, read
@@ -94,6 +96,7 @@ def plan_sweep(
     config: Config, out: Path, *, scenes: Sequence[str] | None = None, seeds: Sequence[int] = (0,)
 ) -> list[SweepRun]:
     """The runs of a sweep: every scene (default: the benchmark's) with every seed."""
+    check_model_names(config)  # before any run starts
     scenes = tuple(scenes) if scenes else benchmark_scenes(config)
     if not seeds:
         raise ConfigError("a sweep needs at least one seed")

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from .._config import ConfigError, config_path, load_config, replace_setting
+from .._nn.model import check_model_names
 from .._runs.loop import TrainingDiverged, fit
 from .._util.compilation_cache import add_compilation_cache_argument, use_compilation_cache
 from .._util.interrupt import deferred_interrupts
@@ -124,6 +125,7 @@ def _train(args: argparse.Namespace) -> int:
             config = replace_setting(config, "train", run_dir=args.run_dir)
         if args.data_dir is not None:
             config = replace_setting(config, "data", data_dir=args.data_dir)
+        check_model_names(config)
         shown = args.config if str(path) == str(args.config) else f"{args.config} ({path})"
         print(f"config {shown}, {config.name}; outputs in {config.train.run_dir}")
         if args.viewer:
