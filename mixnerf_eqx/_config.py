@@ -382,9 +382,10 @@ FIELD_SECTIONS = {"mlp": "mlp", "grid": "grid"}
 ENCODING_KEYS = {"hash_table_log2": "hash", "tv_weight": "triplane"}
 
 
-def _misspelt(value: str, names) -> str:
-    """` (did you mean 'x'?)` where `value` is close to one of `names` but none of them; the
-    config knows the built-in names only (the model's tables are checked when it is built)."""
+def did_you_mean(value: str, names) -> str:
+    """` (did you mean 'x'?)` where `value` is close to one of `names` but none of them (the
+    config knows the built-in field and encoding names only; `check_model_names` in
+    `_nn/model.py` checks the model's tables with the same hint)."""
     close = [] if value in names else difflib.get_close_matches(value, list(names), n=1)
     return f" (did you mean {close[0]!r}?)" if close else ""
 
@@ -398,7 +399,7 @@ def _inapplicable(config: "Config") -> list[str]:
         for name, encoding in ENCODING_KEYS.items():
             if grid.encoding != encoding and getattr(grid, name) != getattr(defaults, name):
                 value, default = getattr(grid, name), getattr(defaults, name)
-                hint = _misspelt(grid.encoding, set(ENCODING_KEYS.values()))
+                hint = did_you_mean(grid.encoding, set(ENCODING_KEYS.values()))
                 problems.append(
                     f"grid.{name} = {value!r} applies to grid.encoding = {encoding!r} only, and this config "
                     f"uses {grid.encoding!r}{hint}: remove it (or set it to {default!r})"
@@ -414,7 +415,7 @@ def _inapplicable(config: "Config") -> list[str]:
             listed = ", ".join(f"{section}.{name} = {getattr(values, name)!r}" for name in changed)
             problems.append(
                 f"{listed}: [{section}] does not apply to model.field = {config.model.field!r}"
-                f"{_misspelt(config.model.field, FIELD_SECTIONS)}; remove "
+                f"{did_you_mean(config.model.field, FIELD_SECTIONS)}; remove "
                 f"{'it' if len(changed) == 1 else 'them'}, or set model.field = {field!r} (a config that "
                 "sets model.field starts the other fields' sections from their defaults)"
             )

@@ -7,7 +7,6 @@ pixels (the renderer). The dense render (`__call__`) and the render that skips e
 """
 
 import dataclasses
-import difflib
 import inspect
 from collections.abc import Callable
 
@@ -16,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._config import Config, ConfigError, GridConfig, schedule_steps
+from .._config import Config, ConfigError, GridConfig, did_you_mean, schedule_steps
 from .._custom_types import FourKeysPerRay, PRNGKey, RayKeys
 from .budget import SampleBudget, budget_capacity, evaluate_live, transmittance_before
 from .field import (
@@ -332,9 +331,7 @@ FIELD_BUILDERS: dict[str, Callable[..., AbstractField]] = {"mlp": _mlp_field, "g
 
 
 def _unknown(key: str, value: str, known: dict[str, object]) -> str:
-    close = difflib.get_close_matches(value, list(known), n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return f"{key} = {value!r} is none of {', '.join(sorted(known))}{hint}"
+    return f"{key} = {value!r} is none of {', '.join(sorted(known))}{did_you_mean(value, known)}"
 
 
 def check_model_names(config: Config) -> None:
