@@ -141,7 +141,10 @@ def markdown(table: dict[str, Any], title: str, names: tuple[str, str] = ("MixNe
                 else ""
             )
             label = "validation" if split == "val" else "test"
-            head = f"| {scene} | {label} | {len(row['seeds'])} | "
+            # The seeds this split pairs: a run may have no validation figures (a scene without
+            # validation views, or a run scored on another split, left out of its record).
+            paired = row[split]["psnr"]["verdict"]
+            head = f"| {scene} | {label} | {len(paired['seeds']) if paired else 0} | "
             lines.append(head + " | ".join(cells) + f" | {falls} |")
     lines.append("")
     for scene, row in table.items():

@@ -92,6 +92,10 @@ def test_null_validation_diverged_runs_and_what_the_pairing_leaves_out(tmp_path,
     assert "lego: only remedy has finished runs, left out" in printed
     assert "fern/seed_4: finished in one sweep only" in printed
     assert "fern/seed_1: paired although trained 900 and 1000 steps" in printed
+    # Each row counts the seeds it pairs: no validation figures at all, and the diverged seed 2
+    # has no test PSNR (three runs of each sweep are paired).
+    assert "| fern | validation | 0 | n/a |" in printed
+    assert "| fern | test | 2 | +1.10 ± " in printed
     table = sweep_verdict.verdicts(sweep_verdict.read_sweep(mix)[0], sweep_verdict.read_sweep(base)[0])
     assert table["fern"]["failed"]["mixnerf"] == [2]
     assert table["fern"]["val"]["psnr"]["verdict"] is None
