@@ -53,8 +53,13 @@ def probe(run_dir: Path, samples: list[tuple[int, int]], data_dir: str | None, c
         run = mx.runs.restore_run(run_dir, checkpoint=checkpoint, data_dir=data_dir, dataset=dataset)
         by_step[str(run.step)] = score(run.state.model, dataset, chunk)
         print(f"{run_dir} step {run.step}, trained samples: {by_step[str(run.step)]}")
-    return {"run": str(run_dir), "step": latest.step, "trained_samples": trained, "by_samples": by_samples,
-            "by_step": by_step}
+    return {
+        "run": str(run_dir),
+        "step": latest.step,
+        "trained_samples": trained,
+        "by_samples": by_samples,
+        "by_step": by_step,
+    }
 
 
 def markdown(results: list[dict[str, Any]]) -> str:
@@ -64,9 +69,8 @@ def markdown(results: list[dict[str, Any]]) -> str:
         for name, metrics in result["by_samples"].items():
             label = f"step {result['step']}, {name.replace(',', ' + ')} samples"
             label += " (as trained)" if name == f"{coarse},{fine}" else ""
-            lines.append(
-                f"| {result['run']} | {label} | {metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {metrics['lpips']:.3f} |"
-            )
+            figures = f"{metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {metrics['lpips']:.3f}"
+            lines.append(f"| {result['run']} | {label} | {figures} |")
         for step, metrics in result["by_step"].items():
             lines.append(
                 f"| {result['run']} | step {step}, {coarse} + {fine} samples | {metrics['psnr']:.2f} | "
@@ -76,11 +80,18 @@ def markdown(results: list[dict[str, Any]]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", nargs="+", type=Path, help="run folders (each with config.json and checkpoints/)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "runs", nargs="+", type=Path, help="run folders (each with config.json and checkpoints/)"
+    )
     parser.add_argument("--data-dir", help="the dataset root, replacing the runs'")
     parser.add_argument(
-        "--samples", nargs="+", default=["32,32", "64,64", "128,128"], help="COARSE,FINE sample counts to render with"
+        "--samples",
+        nargs="+",
+        default=["32,32", "64,64", "128,128"],
+        help="COARSE,FINE sample counts to render with",
     )
     parser.add_argument("--chunk", type=int, default=4096, help="rays rendered at once")
     parser.add_argument("--out", type=Path, help="write STEM.json and STEM.md")

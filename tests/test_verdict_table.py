@@ -85,6 +85,13 @@ def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp
     (tmp_path / "quickstart5_verdict_cpu.json").write_text(json.dumps(sweep))
     with pytest.raises(SystemExit, match="compares background with MixNeRF"):
         verdict_table.markdown(tmp_path)
+    # A setting a config adopted after its sweep was made is read only by a row that names it.
+    sweep["names"] = ["no ramp", "baseline"]
+    assert verdict_table.row_verdicts(sweep, "builtin", "x", first="no ramp").seeds == [0, 1, 2]
+    with pytest.raises(SystemExit, match="compares no ramp with baseline, not MixNeRF with the baseline"):
+        verdict_table.row_verdicts(sweep, "builtin", "x")
+    adopted = [row for row in verdict_table.ROWS if row.first != "MixNeRF"]
+    assert adopted and all("default since" in row.training for row in adopted)
 
 
 def test_the_committed_table_is_the_one_the_committed_results_make():
