@@ -2,7 +2,7 @@
 checkpoints, scored on the validation views (never the test views).
 
     python benchmarks/quality_gap.py runs/fern5/noramp/fern/seed_4 --data-dir ../shared/data \
-        --samples 32,32 64,64 128,128 --out benchmarks/results/quality_gap_fern
+        --samples 32,32 64,64 128,128 --out benchmarks/results/quality_gap_fern_noramp_seed4
 
 For each run folder: the validation views rendered by the latest checkpoint with each
 `COARSE,FINE` sample count of `--samples` (the field is the trained one; only the samplers
@@ -16,6 +16,7 @@ Output: `--out STEM` writes `STEM.json` and `STEM.md`.
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -32,10 +33,23 @@ def with_samples(model: mx.MixNeRF, coarse: int, fine: int) -> mx.MixNeRF:
     return eqx.tree_at(lambda m: m.fine_sampler, model, fine_sampler)
 
 
-def score(model: mx.MixNeRF, dataset, chunk: int) -> dict[str, float]:
+def score(model: mx.MixNeRF, dataset, chunk: int) -> dict[str, Any]:
     result = mx.evaluate(model, dataset, chunk=chunk, split="val")
     metrics = {key: result.means[key] for key in ("psnr", "ssim", "lpips")}
     return {**metrics, "views": len(result.per_view), "seconds": result.seconds}
+
+
+def kept_checkpoints(run_dir: Path) -> list[Path]:
+    """The complete checkpoints a run kept (`step_N` folders with their state and description;
+    not a write that was cut short), oldest first."""
+    found = [
+        path
+        for path in (run_dir / "checkpoints").glob("step_*")
+        if path.name.removeprefix("step_").isdigit()
+        and (path / "state.eqx").is_file()
+        and (path / "meta.json").is_file()
+    ]
+    return sorted(found, key=lambda path: int(path.name.removeprefix("step_")))
 
 
 def probe(run_dir: Path, samples: list[tuple[int, int]], data_dir: str | None, chunk: int) -> dict[str, Any]:
@@ -46,20 +60,34 @@ def probe(run_dir: Path, samples: list[tuple[int, int]], data_dir: str | None, c
     for coarse, fine in samples:
         by_samples[f"{coarse},{fine}"] = score(with_samples(model, coarse, fine), dataset, chunk)
         print(f"{run_dir} step {latest.step}, {coarse}+{fine} samples: {by_samples[f'{coarse},{fine}']}")
-    by_step = {}
-    for checkpoint in sorted((run_dir / "checkpoints").iterdir()):
-        if not (checkpoint / "state.eqx").is_file():
+    # The latest checkpoint at its own counts is scored once.
+    by_step = {str(latest.step): by_samples.get(f"{trained[0]},{trained[1]}")}
+    for checkpoint in kept_checkpoints(run_dir):
+        try:
+            run = mx.runs.restore_run(run_dir, checkpoint=checkpoint, data_dir=data_dir, dataset=dataset)
+        except (mx.runs.CheckpointError, mx.ConfigError) as error:
+            print(f"warning: {checkpoint} left out: {error}", file=sys.stderr)
             continue
-        run = mx.runs.restore_run(run_dir, checkpoint=checkpoint, data_dir=data_dir, dataset=dataset)
-        by_step[str(run.step)] = score(run.state.model, dataset, chunk)
-        print(f"{run_dir} step {run.step}, trained samples: {by_step[str(run.step)]}")
+        if by_step.get(str(run.step)) is None:
+            by_step[str(run.step)] = score(run.state.model, dataset, chunk)
+            print(f"{run_dir} step {run.step}, trained samples: {by_step[str(run.step)]}")
     return {
         "run": str(run_dir),
         "step": latest.step,
         "trained_samples": trained,
         "by_samples": by_samples,
-        "by_step": by_step,
+        "by_step": dict(sorted(by_step.items(), key=lambda item: int(item[0]))),
     }
+
+
+def _figures(metrics: dict[str, Any]) -> str:
+    """PSNR, SSIM and LPIPS cells ("n/a" where a metric was not computed, e.g. LPIPS without
+    its weights)."""
+    cells = []
+    for key, digits in (("psnr", 2), ("ssim", 3), ("lpips", 3)):
+        value = metrics.get(key)
+        cells.append("n/a" if value is None else f"{value:.{digits}f}")
+    return " | ".join(cells)
 
 
 def markdown(results: list[dict[str, Any]]) -> str:
@@ -69,12 +97,12 @@ def markdown(results: list[dict[str, Any]]) -> str:
         for name, metrics in result["by_samples"].items():
             label = f"step {result['step']}, {name.replace(',', ' + ')} samples"
             label += " (as trained)" if name == f"{coarse},{fine}" else ""
-            figures = f"{metrics['psnr']:.2f} | {metrics['ssim']:.3f} | {metrics['lpips']:.3f}"
-            lines.append(f"| {result['run']} | {label} | {figures} |")
+            lines.append(f"| {result['run']} | {label} | {_figures(metrics)} |")
         for step, metrics in result["by_step"].items():
+            if step == str(result["step"]) and f"{coarse},{fine}" in result["by_samples"]:
+                continue  # the row "as trained" above
             lines.append(
-                f"| {result['run']} | step {step}, {coarse} + {fine} samples | {metrics['psnr']:.2f} | "
-                f"{metrics['ssim']:.3f} | {metrics['lpips']:.3f} |"
+                f"| {result['run']} | step {step}, {coarse} + {fine} samples | {_figures(metrics)} |"
             )
     return "\n".join(lines) + "\n"
 
@@ -104,13 +132,22 @@ def main() -> None:
             parser.error(f"--samples takes COARSE,FINE pairs of whole numbers, got {item!r}")
         if coarse < 1 or fine < 1:
             parser.error(f"--samples counts must be at least 1, got {item!r}")
-        samples.append((coarse, fine))
-    results = [probe(run, samples, args.data_dir, args.chunk) for run in args.runs]
-    table = markdown(results)
-    print(table)
+        if (coarse, fine) not in samples:
+            samples.append((coarse, fine))
+    if args.chunk < 1:
+        parser.error(f"--chunk must be at least 1, got {args.chunk}")
+    results = []
+    for run in args.runs:
+        try:
+            results.append(probe(run, samples, args.data_dir, args.chunk))
+        except (mx.ConfigError, mx.runs.CheckpointError, ValueError) as error:
+            raise SystemExit(f"error: {run}: {error}") from None
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.with_suffix(".json").write_text(json.dumps(results, indent=2) + "\n")
+    table = markdown(results)
+    print(table)
+    if args.out:
         args.out.with_suffix(".md").write_text(table)
 
 

@@ -100,7 +100,7 @@ ROWS = (
         "fern",
         "3 x 504x378",
         "llff3_grid with the paper's lambda_C ramp (its default until 2026-12-06), "
-        "14,000 steps (12.5 epochs)",
+        "512 rays, 32 + 32 samples, 14,000 steps (12.5 epochs)",
         "built-in's and fern's test views, earlier (grid)",
         "full_res_fern_cpu.json",
         "fern",
@@ -108,7 +108,8 @@ ROWS = (
     Row(
         "fern",
         "3 x 504x378",
-        "llff3_grid without the ramp (its default since 2026-12-06), 14,000 steps",
+        "llff3_grid without the ramp (its default since 2026-12-06), "
+        "512 rays, 32 + 32 samples, 14,000 steps",
         "fern's validation views away from test (ramp; 5 seeds); "
         "built-in's and fern's test views, earlier (grid)",
         "full_res_fern_noramp_baseline_cpu.json",

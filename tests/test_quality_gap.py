@@ -1,6 +1,7 @@
 """`benchmarks/quality_gap.py`: a trained run's validation views with other sample counts and
 at each checkpoint it kept."""
 
+import subprocess
 import sys
 from pathlib import Path
 
@@ -37,3 +38,43 @@ def test_other_sample_counts_change_only_the_samplers_and_the_probe_scores_valid
     table = quality_gap.markdown([result])
     assert f"step 60, {trained[0]} + {trained[1]} samples (as trained)" in table
     assert "step 60, 3 + 5 samples |" in table
+
+
+def test_only_complete_checkpoints_are_read_and_missing_lpips_is_shown_as_such(tmp_path):
+    for name, files in (
+        ("step_00000010", ("state.eqx", "meta.json")),
+        ("step_00000200", ("state.eqx", "meta.json")),
+        ("step_00000030", ("state.eqx",)),  # a write cut short: no description
+        (".step_00000040.tmp-123", ("state.eqx", "meta.json")),  # a write still staging
+        ("step_final", ("state.eqx", "meta.json")),
+    ):
+        folder = tmp_path / "checkpoints" / name
+        folder.mkdir(parents=True)
+        for file in files:
+            (folder / file).write_text("")
+    kept = quality_gap.kept_checkpoints(tmp_path)
+    assert [path.name for path in kept] == ["step_00000010", "step_00000200"]  # by step, not by name
+
+    result = {
+        "run": "runs/x",
+        "step": 200,
+        "trained_samples": (8, 8),
+        "by_samples": {"16,16": {"psnr": 20.0, "ssim": 0.5, "lpips": None}},
+        "by_step": {
+            "10": {"psnr": 18.0, "ssim": 0.4, "lpips": None},
+            "200": {"psnr": 21.0, "ssim": 0.6, "lpips": None},
+        },
+    }
+    table = quality_gap.markdown([result])
+    assert "| runs/x | step 200, 16 + 16 samples | 20.00 | 0.500 | n/a |" in table
+    # Without the trained counts among the sample counts, the latest checkpoint keeps its row.
+    assert "| runs/x | step 200, 8 + 8 samples | 21.00 | 0.600 | n/a |" in table
+    assert "| runs/x | step 10, 8 + 8 samples | 18.00 | 0.400 | n/a |" in table
+
+
+def test_a_folder_that_is_not_a_run_is_one_line_and_status_1(tmp_path):
+    script = Path(__file__).resolve().parent.parent / "benchmarks" / "quality_gap.py"
+    finished = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True)
+    assert finished.returncode == 1
+    assert finished.stderr.strip().startswith(f"error: {tmp_path}: ")
+    assert "config.json" in finished.stderr and "Traceback" not in finished.stderr
