@@ -112,7 +112,7 @@ ROWS = (
         "512 rays, 32 + 32 samples, 14,000 steps",
         "fern's validation views away from test (ramp; 5 seeds); "
         "built-in's and fern's test views, earlier (grid)",
-        "full_res_fern_noramp_baseline_cpu.json",
+        "full_res_fern_noramp_baseline_newval.json",
         "fern",
         first="no ramp",
     ),
