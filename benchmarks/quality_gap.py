@@ -39,19 +39,6 @@ def score(model: mx.MixNeRF, dataset, chunk: int) -> dict[str, Any]:
     return {**metrics, "views": len(result.per_view), "seconds": result.seconds}
 
 
-def kept_checkpoints(run_dir: Path) -> list[Path]:
-    """The complete checkpoints a run kept (`step_N` folders with their state and description;
-    not a write that was cut short), oldest first."""
-    found = [
-        path
-        for path in (run_dir / "checkpoints").glob("step_*")
-        if path.name.removeprefix("step_").isdigit()
-        and (path / "state.eqx").is_file()
-        and (path / "meta.json").is_file()
-    ]
-    return sorted(found, key=lambda path: int(path.name.removeprefix("step_")))
-
-
 def probe(run_dir: Path, samples: list[tuple[int, int]], data_dir: str | None, chunk: int) -> dict[str, Any]:
     latest = mx.runs.restore_run(run_dir, data_dir=data_dir)
     dataset, model = latest.dataset, latest.state.model
@@ -62,7 +49,7 @@ def probe(run_dir: Path, samples: list[tuple[int, int]], data_dir: str | None, c
         print(f"{run_dir} step {latest.step}, {coarse}+{fine} samples: {by_samples[f'{coarse},{fine}']}")
     # The latest checkpoint at its own counts is scored once.
     by_step = {str(latest.step): by_samples.get(f"{trained[0]},{trained[1]}")}
-    for checkpoint in kept_checkpoints(run_dir):
+    for checkpoint in mx.runs.checkpoints(run_dir):
         try:
             run = mx.runs.restore_run(run_dir, checkpoint=checkpoint, data_dir=data_dir, dataset=dataset)
         except (mx.runs.CheckpointError, mx.ConfigError) as error:

@@ -10,6 +10,7 @@ A run folder holds `config.json`, `train_log.jsonl`, `checkpoints/` and, once ev
 """
 
 from ._runs.checkpoint import CheckpointError as CheckpointError
+from ._runs.checkpoint import checkpoints as checkpoints
 from ._runs.checkpoint import latest_checkpoint as latest_checkpoint
 from ._runs.checkpoint import load_checkpoint as load_checkpoint
 from ._runs.checkpoint import read_checkpoint_meta as read_checkpoint_meta

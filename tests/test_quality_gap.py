@@ -52,7 +52,7 @@ def test_only_complete_checkpoints_are_read_and_missing_lpips_is_shown_as_such(t
         folder.mkdir(parents=True)
         for file in files:
             (folder / file).write_text("")
-    kept = quality_gap.kept_checkpoints(tmp_path)
+    kept = mx.runs.checkpoints(tmp_path)
     assert [path.name for path in kept] == ["step_00000010", "step_00000200"]  # by step, not by name
 
     result = {

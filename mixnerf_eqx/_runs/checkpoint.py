@@ -43,6 +43,12 @@ def remove_stale_staging(run_dir: str | Path) -> list[Path]:
     return stale
 
 
+def checkpoints(run_dir: str | Path) -> list[Path]:
+    """The complete checkpoints in `run_dir` (a state and its description; not a write cut
+    short or still staging), oldest first."""
+    return _checkpoint_dirs(Path(run_dir))
+
+
 def latest_checkpoint(run_dir: str | Path) -> Path | None:
     """The newest complete checkpoint in `run_dir`, or None."""
     found = _checkpoint_dirs(Path(run_dir))
