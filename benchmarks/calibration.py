@@ -22,6 +22,12 @@ Also timed, for the first seed: the predictive pass over the test views against 
 
     python benchmarks/calibration.py --data-dir ../shared/data --seeds 0 1 2
 
+or, for runs trained elsewhere (a sweep's folders at the benchmark's resolution), their latest
+checkpoints scored the same way, on an evenly spaced subset of the test views if asked:
+
+    python benchmarks/calibration.py --runs runs/full_lego/mixnerf/lego/seed_0 ... \\
+        --data-dir ../shared/data --test-views 8 --no-time --tag lego400
+
 Results: `results/calibration_cpu.json` and `results/calibration_cpu.md`.
 """
 
@@ -108,9 +114,38 @@ def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dic
     started = time.perf_counter()
     model = mx.fit(config, dataset=dataset, progress=False, write_renders=False).model
     train_s = time.perf_counter() - started
-    val, test = dataset.split("val"), dataset.test
     print(f"{name} seed {seed}: trained {config.train.max_steps} steps in {train_s:.0f} s")
+    record = {"scene": name, "seed": seed, "config": base, "overrides": overrides}
+    record["steps"] = config.train.max_steps
+    return {**record, "train_s": train_s, **score(model, dataset, args, timed=seed == args.seeds[0])}
 
+
+def run_folder(run_dir: str, args: argparse.Namespace, first: bool) -> dict[str, Any]:
+    """The record of a run trained elsewhere (a sweep's or `train`'s folder): its latest
+    checkpoint, scored as `run_scene` scores a model it trains."""
+    run = mx.runs.restore_run(run_dir, data_dir=args.data_dir)
+    config = run.config
+    print(f"{run_dir}: {config.name} on {run.dataset.name}, seed {config.train.seed}, step {run.step}")
+    record = {
+        "scene": config.data.scene,
+        "seed": config.train.seed,
+        "config": config.name,
+        "run_dir": str(run_dir),
+        "steps": run.step,
+    }
+    return {**record, "train_s": None, **score(run.model, run.dataset, args, timed=first and args.time)}
+
+
+def evenly(views: Views, count: int) -> Views:
+    """`count` of `views`, evenly spaced (all of them for 0 or more than there are)."""
+    if count <= 0 or count >= views.num_views:
+        return views
+    return views.select([int(i) for i in np.linspace(0, views.num_views - 1, count).round()])
+
+
+def score(model: mx.MixNeRF, dataset, args: argparse.Namespace, timed: bool) -> dict[str, Any]:
+    """Fit every correction on the validation views and score each on the test views."""
+    val, test = dataset.split("val"), evenly(dataset.test, args.test_views)
     pit = mx.uncertainty.calibration_pit(model, val, dataset.near, dataset.far, args.chunk, max_pixels=args.calibration_pixels)
     picked = jax.tree_util.tree_map(
         lambda x: x[np.sort(np.random.default_rng(0).choice(x.shape[0], min(x.shape[0], args.calibration_pixels), replace=False))],
@@ -152,21 +187,14 @@ def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dic
         reports[method] = report
         cover = ", ".join(f"{value['pooled']:.3f}" for value in report["colour_coverage"].values())
         print(f"  {method}: coverage {cover}; calibration error {report['calibration_error']:.4f}")
-    cost = timed_passes(model, test, dataset, args.chunk) if seed == args.seeds[0] else None
     return {
-        "scene": name,
-        "seed": seed,
-        "config": base,
-        "overrides": overrides,
-        "steps": config.train.max_steps,
-        "train_s": train_s,
         "test_views": list(test.ids),
         "test_size": [test.width, test.height],
         "calibration_views": list(val.ids),
         "calibration_pixels": int(pit["colour_cdf"].shape[0]),
         "temperature": temperature,
         "methods": reports,
-        "cost": cost,
+        "cost": timed_passes(model, test, dataset, args.chunk) if timed else None,
         "chunk": args.chunk,
     }
 
@@ -235,19 +263,51 @@ def main() -> None:
     parser.add_argument("--chunk", type=int, default=4096, help="rays per compiled call, both passes")
     parser.add_argument("--calibration-pixels", type=int, default=65536)
     parser.add_argument("--tag", default="", help="suffix of the result files")
+    parser.add_argument(
+        "--runs",
+        nargs="+",
+        default=None,
+        help="score these trained run folders (their latest checkpoints) instead of training --scenes",
+    )
+    parser.add_argument(
+        "--test-views", type=int, default=0, help="score this many of the test views, evenly spaced (0: all)"
+    )
+    parser.add_argument(
+        "--time",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="with --runs: time the passes on the first run (off on a loaded machine)",
+    )
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as work:
-        results = [run_scene(name, seed, args, Path(work)) for name in args.scenes for seed in args.seeds]
+    if args.runs:
+        results = [run_folder(run_dir, args, first=index == 0) for index, run_dir in enumerate(args.runs)]
+    else:
+        with tempfile.TemporaryDirectory() as work:
+            results = [run_scene(name, seed, args, Path(work)) for name in args.scenes for seed in args.seeds]
     stem = f"calibration_{platform_tag()}{'_' + args.tag if args.tag else ''}"
     write_json(RESULTS / f"{stem}.json", {"results": results})
+    timed = any(result["cost"] is not None for result in results)
+    cost = (
+        "Cost of the predictive pass against an ordinary dense render (both compiled; "
+        + f"chunk {args.chunk}):\n\n"
+        + cost_table(results)
+        if timed
+        else "Not timed (`--no-time`)."
+    )
+    sources = "".join(
+        f"- {result['scene']} seed {result['seed']}: {result['run_dir']} "
+        f"({result['config']}, step {result['steps']})\n"
+        for result in results
+        if result.get("run_dir")
+    )
     text = (
         "Coverage pooled over the test pixels and channels (mean ± sd over seeds); worst view: the "
         "lowest per-view coverage of any seed; NLL per channel in nats (FlipNeRF's definition); "
         "every setting fitted on validation views.\n\n"
+        + (f"Runs scored:\n\n{sources}\n" if sources else "")
         + table(results)
-        + "\n\nCost of the predictive pass against an ordinary dense render (both compiled; "
-        + f"chunk {args.chunk}):\n\n"
-        + cost_table(results)
+        + "\n\n"
+        + cost
         + f"\n\nMachine: {machine_info()['platform']}, {machine_info()['cpu_count']} CPUs.\n"
     )
     write_markdown(RESULTS / f"{stem}.md", text)
