@@ -280,7 +280,10 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.runs:
-        results = [run_folder(run_dir, args, first=index == 0) for index, run_dir in enumerate(args.runs)]
+        try:
+            results = [run_folder(run_dir, args, first=index == 0) for index, run_dir in enumerate(args.runs)]
+        except (mx.ConfigError, mx.runs.CheckpointError) as error:
+            raise SystemExit(f"error: {error}") from None
     else:
         with tempfile.TemporaryDirectory() as work:
             results = [run_scene(name, seed, args, Path(work)) for name in args.scenes for seed in args.seeds]
