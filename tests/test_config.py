@@ -48,8 +48,9 @@ def test_every_shipped_config_loads(path):
 
 def test_recommended_configs_take_their_familys_choice_and_paper_configs_stay_the_papers():
     # LLFF's validation views chose training without the lambda_C ramp (5 seeds on fern at
-    # 504x378, benchmarks/fidelity.md); DTU follows LLFF. Blender's recommended config and every
-    # paper config keep the paper's ramp from 4 down to 1e-3.
+    # 504x378, benchmarks/fidelity.md); DTU follows LLFF. Blender's recommended config (no ramp
+    # level on lego's validation views over 5 seeds) and every paper config keep the paper's ramp
+    # from 4 down to 1e-3.
     for name in ("llff3_grid", "dtu3_grid"):
         config = load_config(name)
         assert config.loss.lambda_colour_start == config.loss.lambda_colour_end == 1e-3, name
@@ -57,6 +58,7 @@ def test_recommended_configs_take_their_familys_choice_and_paper_configs_stay_th
     for name in ("llff3", "dtu3", "blender4", "llff6", "blender4_grid", "builtin_grid"):
         config = load_config(name)
         assert (config.loss.lambda_colour_start, config.loss.lambda_colour_end) == (4.0, 1e-3), name
+    assert "validation views" in load_config("blender4_grid").chosen_on
 
 
 def test_unknown_key_names_key_and_file(tmp_path):
