@@ -78,7 +78,7 @@ def test_rows_from_a_protocol_summary_and_a_sweep_verdict_and_a_missing_file(tmp
     assert "not made (`results/fidelity_cpu_hash_summary.json`)" in lines[4]
     assert "not made (`results/fidelity_cpu_ladder_4x64_summary.json`)" in lines[5]
     assert "not made (`results/fidelity_cpu_ladder_4x128_summary.json`)" in lines[6]
-    assert "not made (`results/full_res_lego_cpu.json`)" in lines[-1]
+    assert "not made (`results/full_res_lego_baseline_newval.json`)" in lines[-1]
 
     # A sweep record of something else against MixNeRF is refused, not shown as MixNeRF's.
     sweep["names"] = ["background", "MixNeRF"]
