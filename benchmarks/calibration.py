@@ -17,7 +17,7 @@ trains) and the fine level's termination distance:
   temperature changes the colour's order, since the spread of the components' locations does
   not scale with beta).
 
-Also timed, for the first seed: the predictive pass over the test views against an ordinary
+Also timed, for the first seed (unless `--no-time`): the predictive pass over the test views against an ordinary
 (dense) render of them, both compiled beforehand, with the same chunk.
 
     python benchmarks/calibration.py --data-dir ../shared/data --seeds 0 1 2
@@ -26,7 +26,7 @@ or, for runs trained elsewhere (a sweep's folders at the benchmark's resolution)
 checkpoints scored the same way, on an evenly spaced subset of the test views if asked:
 
     python benchmarks/calibration.py --runs runs/full_lego/mixnerf/lego/seed_0 ... \\
-        --data-dir ../shared/data --test-views 8 --no-time --tag lego400
+        --data-dir ../shared/data --test-views 5 --no-time --tag lego400
 
 Results: `results/calibration_cpu.json` and `results/calibration_cpu.md`.
 """
@@ -117,7 +117,7 @@ def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dic
     print(f"{name} seed {seed}: trained {config.train.max_steps} steps in {train_s:.0f} s")
     record = {"scene": name, "seed": seed, "config": base, "overrides": overrides}
     record["steps"] = config.train.max_steps
-    return {**record, "train_s": train_s, **score(model, dataset, args, timed=seed == args.seeds[0])}
+    return {**record, "train_s": train_s, **score(model, dataset, args, timed=seed == args.seeds[0] and args.time)}
 
 
 def run_folder(run_dir: str, args: argparse.Namespace, first: bool) -> dict[str, Any]:
@@ -276,7 +276,7 @@ def main() -> None:
         "--time",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="with --runs: time the passes on the first run (off on a loaded machine)",
+        help="time the passes on the first seed or run (--no-time on a loaded machine)",
     )
     args = parser.parse_args()
     if args.runs:
