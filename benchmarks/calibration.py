@@ -17,8 +17,8 @@ trains) and the fine level's termination distance:
   temperature changes the colour's order, since the spread of the components' locations does
   not scale with beta).
 
-Also timed, for the first seed (unless `--no-time`): the predictive pass over the test views against an ordinary
-(dense) render of them, both compiled beforehand, with the same chunk.
+Also timed, for the first seed (unless `--no-time`): the predictive pass over the test views
+against an ordinary (dense) render of them, both compiled beforehand, with the same chunk.
 
     python benchmarks/calibration.py --data-dir ../shared/data --seeds 0 1 2
 
@@ -32,6 +32,7 @@ Results: `results/calibration_cpu.json` and `results/calibration_cpu.md`.
 """
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -117,7 +118,8 @@ def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dic
     print(f"{name} seed {seed}: trained {config.train.max_steps} steps in {train_s:.0f} s")
     record = {"scene": name, "seed": seed, "config": base, "overrides": overrides}
     record["steps"] = config.train.max_steps
-    return {**record, "train_s": train_s, **score(model, dataset, args, timed=seed == args.seeds[0] and args.time)}
+    timed = seed == args.seeds[0] and args.time
+    return {**record, "train_s": train_s, **score(model, dataset, args, timed=timed)}
 
 
 def run_folder(run_dir: str, args: argparse.Namespace, first: bool) -> dict[str, Any]:
@@ -134,6 +136,41 @@ def run_folder(run_dir: str, args: argparse.Namespace, first: bool) -> dict[str,
         "steps": run.step,
     }
     return {**record, "train_s": None, **score(run.model, run.dataset, args, timed=first and args.time)}
+
+
+def check_runs(run_dirs: list[str]) -> None:
+    """The table averages the runs of a scene as seeds of one setting: refuse folders that
+    are not runs, runs of one scene whose settings differ, and a seed given twice, before any
+    work."""
+    seen: dict[str, tuple[str, dict[str, Any], set[int]]] = {}
+    for run_dir in run_dirs:
+        path = Path(run_dir) / "config.json"
+        if not path.is_file():
+            raise SystemExit(f"error: {run_dir} is not a training run: it has no config.json")
+        config = json.loads(path.read_text())
+        scene, seed = config["data"]["scene"], config["train"]["seed"]
+        setting = {
+            section: {k: v for k, v in values.items() if k not in ("seed", "run_dir", "data_dir")}
+            if isinstance(values, dict)
+            else values
+            for section, values in config.items()
+        }
+        first, known, seeds = seen.setdefault(scene, (run_dir, setting, set()))
+        if setting != known:
+            differ = sorted(
+                f"{section}.{key}" if isinstance(values, dict) else section
+                for section, values in setting.items()
+                for key in (values if isinstance(values, dict) else [None])
+                if (known.get(section, {}).get(key) if isinstance(values, dict) else known.get(section))
+                != (values.get(key) if isinstance(values, dict) else values)
+            )
+            raise SystemExit(
+                f"error: {run_dir} and {first} are runs of {scene} with other settings "
+                f"({', '.join(differ) or 'keys'}): score one setting at a time"
+            )
+        if seed in seeds:
+            raise SystemExit(f"error: {run_dir}: seed {seed} of {scene} is given twice")
+        seeds.add(seed)
 
 
 def evenly(views: Views, count: int) -> Views:
@@ -256,7 +293,7 @@ def cost_table(results: list[dict[str, Any]]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data-dir", default=None, help="dataset root (for fern)")
+    parser.add_argument("--data-dir", default=None, help="dataset root (fern, or the scenes of --runs)")
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--steps", type=int, default=0, help="training steps (0: the config's)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -280,6 +317,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.runs:
+        check_runs(args.runs)
         try:
             results = [run_folder(run_dir, args, first=index == 0) for index, run_dir in enumerate(args.runs)]
         except (mx.ConfigError, mx.runs.CheckpointError) as error:
