@@ -149,24 +149,19 @@ def check_runs(run_dirs: list[str]) -> None:
             raise SystemExit(f"error: {run_dir} is not a training run: it has no config.json")
         config = json.loads(path.read_text())
         scene, seed = config["data"]["scene"], config["train"]["seed"]
+        # Every setting as "section.key", without what differs between seeds of one setting.
         setting = {
-            section: {k: v for k, v in values.items() if k not in ("seed", "run_dir", "data_dir")}
-            if isinstance(values, dict)
-            else values
+            f"{section}.{key}" if isinstance(values, dict) else section: value
             for section, values in config.items()
+            for key, value in (values.items() if isinstance(values, dict) else [(None, values)])
+            if key not in ("seed", "run_dir", "data_dir")
         }
         first, known, seeds = seen.setdefault(scene, (run_dir, setting, set()))
-        if setting != known:
-            differ = sorted(
-                f"{section}.{key}" if isinstance(values, dict) else section
-                for section, values in setting.items()
-                for key in (values if isinstance(values, dict) else [None])
-                if (known.get(section, {}).get(key) if isinstance(values, dict) else known.get(section))
-                != (values.get(key) if isinstance(values, dict) else values)
-            )
+        differ = sorted(key for key in setting.keys() | known.keys() if setting.get(key) != known.get(key))
+        if differ:
             raise SystemExit(
                 f"error: {run_dir} and {first} are runs of {scene} with other settings "
-                f"({', '.join(differ) or 'keys'}): score one setting at a time"
+                f"({', '.join(differ)}): score one setting at a time"
             )
         if seed in seeds:
             raise SystemExit(f"error: {run_dir}: seed {seed} of {scene} is given twice")
