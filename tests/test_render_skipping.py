@@ -1,0 +1,55 @@
+"""`benchmarks/render_skipping.py`: its record keeps every threshold the choice tried."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+
+import render_skipping  # noqa: E402
+
+
+def _metrics(psnrs, render):
+    return {
+        "scene": "fern",
+        "num_views": len(psnrs),
+        "per_view": [{"psnr": p} for p in psnrs],
+        "mean": {"psnr": sum(psnrs) / len(psnrs), "ssim": 0.5, "lpips": 0.4},
+        "render": render,
+    }
+
+
+def _render(choice):
+    return {
+        "grid_seconds": 2.0,
+        "density_threshold": 0.04,
+        "occupied_fraction": 0.98,
+        "dense_evaluations_per_frame": 100.0,
+        "field_evaluations_per_frame": 99.0,
+        "needed_evaluations_per_frame": 98.0,
+        "evaluation_reduction": 100 / 99,
+        "seconds_per_frame": 1.0,
+        "threshold_choice": choice,
+    }
+
+
+def test_the_trials_are_kept_and_listed_by_threshold():
+    trials = [
+        {"threshold": 1.28, "bound_db": 1.82, "reduction": 1.16},
+        {"threshold": 0.08, "bound_db": 0.155, "reduction": 1.0},
+        {"threshold": 0.02, "bound_db": 0.016, "reduction": 1.0},
+    ]
+    dense = {"wall_s": 10.0, "metrics": _metrics([20.0, 19.0], {"seconds_per_frame": 1.0})}
+    skipping = {"wall_s": 12.0, "metrics": _metrics([20.0, 18.9], _render({"trials": trials}))}
+    row = render_skipping.summary(Path("runs/x"), dense, skipping)
+    assert row["trials"] == trials
+    assert abs(row["largest_view_psnr_change"] + 0.1) < 1e-9
+    line = render_skipping.trials_table([row]).splitlines()[-1]
+    assert line == "| runs/x | 0.02 (0.016; 1.00x); 0.08 (0.155; 1.00x); 1.28 (1.820; 1.16x) |"
+
+
+def test_a_run_without_a_chosen_threshold_says_so():
+    dense = {"wall_s": 10.0, "metrics": _metrics([20.0], {"seconds_per_frame": 1.0})}
+    skipping = {"wall_s": 12.0, "metrics": _metrics([20.0], _render(None))}
+    row = render_skipping.summary(Path("runs/y"), dense, skipping)
+    assert row["trials"] == []
+    assert render_skipping.trials_table([row]).splitlines()[-1] == "| runs/y | none (no threshold chosen) |"
