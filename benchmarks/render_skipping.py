@@ -86,7 +86,7 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def trials_table(rows: list[dict[str, Any]]) -> str:
-    """The thresholds each choice tried on training pixels, in the order tried: the bound on
+    """The thresholds each choice tried on training pixels, sorted by threshold: the bound on
     the PSNR it could lose and how many fewer evaluations it made."""
     lines = ["| run | thresholds tried (bound on the PSNR lost, dB; fewer evaluations) |", "|---|---|"]
     for r in rows:

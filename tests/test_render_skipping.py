@@ -1,7 +1,10 @@
 """`benchmarks/render_skipping.py`: its record keeps every threshold the choice tried."""
 
+import dataclasses
 import sys
 from pathlib import Path
+
+from mixnerf_eqx._inference.threshold import ThresholdChoice, ThresholdTrial
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
@@ -33,15 +36,19 @@ def _render(choice):
 
 
 def test_the_trials_are_kept_and_listed_by_threshold():
-    trials = [
-        {"threshold": 1.28, "bound_db": 1.82, "reduction": 1.16},
-        {"threshold": 0.08, "bound_db": 0.155, "reduction": 1.0},
-        {"threshold": 0.02, "bound_db": 0.016, "reduction": 1.0},
-    ]
+    # The choice as `eval` writes it into metrics.json (`dataclasses.asdict`), trials in the order tried.
+    tried = (
+        ThresholdTrial(1.28, 1.82, 1.16),
+        ThresholdTrial(0.08, 0.155, 1.0),
+        ThresholdTrial(0.02, 0.016, 1.0),
+    )
+    choice = ThresholdChoice(
+        threshold=0.02, bound_db=0.016, reduction=1.0, within_tolerance=True, tolerance_db=0.1, trials=tried
+    )
     dense = {"wall_s": 10.0, "metrics": _metrics([20.0, 19.0], {"seconds_per_frame": 1.0})}
-    skipping = {"wall_s": 12.0, "metrics": _metrics([20.0, 18.9], _render({"trials": trials}))}
+    skipping = {"wall_s": 12.0, "metrics": _metrics([20.0, 18.9], _render(dataclasses.asdict(choice)))}
     row = render_skipping.summary(Path("runs/x"), dense, skipping)
-    assert row["trials"] == trials
+    assert [t["threshold"] for t in row["trials"]] == [1.28, 0.08, 0.02]
     assert abs(row["largest_view_psnr_change"] + 0.1) < 1e-9
     line = render_skipping.trials_table([row]).splitlines()[-1]
     assert line == "| runs/x | 0.02 (0.016; 1.00x); 0.08 (0.155; 1.00x); 1.28 (1.820; 1.16x) |"
