@@ -1,0 +1,96 @@
+"""Per-seed figures of a written record, laid out as a sweep folder for `sweep_verdict.py`.
+
+Run folders are not kept, but the records under `results/` hold every seed's validation and
+test figures. This writes `OUT/SCENE/seed_N/metrics.json` from one arm of a record, so that a
+verdict can pair new runs with runs made earlier without training them again:
+
+    python benchmarks/collect_runs.py benchmarks/results/full_res_fern_noramp_newval_runs.json \
+        noramp --scene fern --out runs/verdict/shipped
+    python benchmarks/collect_runs.py benchmarks/results/fern_probe_distortion.json mixnerf \
+        --out runs/verdict/distortion --seeds 0 1
+
+Two kinds of record are read: a runs record (`{"runs": {ARM: {SEED: metrics}}}`, one scene:
+give `--scene`) and a verdict record written by `sweep_verdict.py` (ARM is `mixnerf` or
+`baseline`, the first and second sweep). Each `metrics.json` written says which record it
+came from (`"collected_from"`); an existing seed folder is an error, never overwritten.
+"""
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+SPLITS = ("val", "test")
+
+
+def from_runs_record(record: dict[str, Any], arm: str, scene: str | None) -> dict[str, dict[int, Any]]:
+    if scene is None:
+        raise SystemExit("a runs record holds one scene's runs: say which with --scene")
+    if arm not in record["runs"]:
+        raise SystemExit(f"no arm {arm!r} in the record (it has {', '.join(sorted(record['runs']))})")
+    return {scene: {int(seed): metrics for seed, metrics in record["runs"][arm].items()}}
+
+
+def from_verdict_record(record: dict[str, Any], arm: str, scene: str | None) -> dict[str, dict[int, Any]]:
+    if arm not in ("mixnerf", "baseline"):
+        raise SystemExit(
+            f"a verdict record's arms are 'mixnerf' and 'baseline' (its first and second), not {arm!r}"
+        )
+    scenes = {}
+    for name, row in record["scenes"].items():
+        if scene is not None and name != scene:
+            continue
+        runs: dict[int, Any] = {}
+        for split in SPLITS:
+            for key, column in row[split].items():
+                for seed, value in column[arm].items():
+                    runs.setdefault(int(seed), {"val": {}, "test": {}})[split][key] = value
+        scenes[name] = runs
+    if not scenes:
+        raise SystemExit(f"no scene {scene!r} in the record (it has {', '.join(sorted(record['scenes']))})")
+    return scenes
+
+
+def collect(record_path: Path, arm: str, out: Path, scene: str | None, seeds: list[int] | None) -> list[Path]:
+    record = json.loads(record_path.read_text())
+    if "runs" in record:
+        scenes = from_runs_record(record, arm, scene)
+    elif "scenes" in record:
+        scenes = from_verdict_record(record, arm, scene)
+    else:
+        raise SystemExit(f"{record_path}: neither a runs record nor a verdict record")
+    written = []
+    for name, runs in scenes.items():
+        missing = sorted(set(seeds or []) - set(runs))
+        if missing:
+            raise SystemExit(f"{name}: the record has no seed {', '.join(map(str, missing))} for {arm!r}")
+        for seed in sorted(runs):
+            if seeds is not None and seed not in seeds:
+                continue
+            folder = out / name / f"seed_{seed}"
+            if folder.exists():
+                raise SystemExit(f"{folder}: exists already (nothing written over)")
+            folder.mkdir(parents=True)
+            metrics = {**runs[seed], "collected_from": f"{record_path.name}, arm {arm}"}
+            (folder / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+            written.append(folder)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("record", type=Path, help="a runs record or a verdict record (JSON)")
+    parser.add_argument("arm", help="the arm whose runs to lay out")
+    parser.add_argument("--out", type=Path, required=True, help="the sweep-like folder to write into")
+    parser.add_argument("--scene", help="the scene (a runs record needs it; filters a verdict record)")
+    parser.add_argument("--seeds", type=int, nargs="+", help="only these seeds (default: all the arm has)")
+    args = parser.parse_args(argv)
+    if not args.record.is_file():
+        raise SystemExit(f"{args.record}: no such record")
+    for folder in collect(args.record, args.arm, args.out, args.scene, args.seeds):
+        print(f"wrote {folder / 'metrics.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

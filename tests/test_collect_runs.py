@@ -1,0 +1,48 @@
+"""`benchmarks/collect_runs.py`: a record's per-seed figures, laid out again as sweep folders,
+give `sweep_verdict.py` the verdict that was made from the runs themselves."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+RESULTS = Path(__file__).resolve().parent.parent / "benchmarks" / "results"
+sys.path.insert(0, str(RESULTS.parent))
+
+import collect_runs  # noqa: E402
+import sweep_verdict  # noqa: E402
+
+
+def test_the_probe_verdict_is_made_again_from_two_records(tmp_path):
+    # The distortion probe paired its own run folders with the shipped runs of seeds 0-2,
+    # whose figures the shipped config's runs record holds as well: laid out from the two
+    # records, the pairs must give the probe's table to the last digit.
+    probe = json.loads((RESULTS / "fern_probe_distortion.json").read_text())
+    collect_runs.collect(RESULTS / "fern_probe_distortion.json", "mixnerf", tmp_path / "first", None, None)
+    collect_runs.collect(
+        RESULTS / "full_res_fern_noramp_newval_runs.json", "noramp", tmp_path / "second", "fern", [0, 1, 2]
+    )
+    first, _ = sweep_verdict.read_sweep(tmp_path / "first")
+    second, _ = sweep_verdict.read_sweep(tmp_path / "second")
+    assert sorted(first["fern"]) == [0, 1] and sorted(second["fern"]) == [0, 1, 2]
+    table = sweep_verdict.verdicts(first, second)
+    assert json.loads(json.dumps(table)) == probe["scenes"]
+
+
+def test_a_seed_folder_is_never_written_over_and_bad_requests_are_refused(tmp_path):
+    record = RESULTS / "full_res_fern_noramp_newval_runs.json"
+    collect_runs.collect(record, "noramp", tmp_path, "fern", [3])
+    written = (tmp_path / "fern" / "seed_3" / "metrics.json").read_text()
+    assert json.loads(written)["collected_from"].startswith("full_res_fern_noramp_newval_runs.json")
+    with pytest.raises(SystemExit, match="exists already"):
+        collect_runs.collect(record, "noramp", tmp_path, "fern", [3])
+    assert (tmp_path / "fern" / "seed_3" / "metrics.json").read_text() == written
+    with pytest.raises(SystemExit, match="--scene"):
+        collect_runs.collect(record, "noramp", tmp_path / "other", None, None)
+    with pytest.raises(SystemExit, match="no arm 'ramp'"):
+        collect_runs.collect(record, "ramp", tmp_path / "other", "fern", None)
+    with pytest.raises(SystemExit, match="no seed 9"):
+        collect_runs.collect(record, "noramp", tmp_path / "other", "fern", [9])
+    with pytest.raises(SystemExit, match="'mixnerf' and 'baseline'"):
+        collect_runs.collect(RESULTS / "fern_probe_distortion.json", "noramp", tmp_path / "other", None, None)
