@@ -7,12 +7,14 @@ verdict can pair new runs with runs made earlier without training them again:
     python benchmarks/collect_runs.py benchmarks/results/full_res_fern_noramp_newval_runs.json \
         noramp --scene fern --out runs/verdict/shipped
     python benchmarks/collect_runs.py benchmarks/results/fern_probe_distortion.json mixnerf \
-        --out runs/verdict/distortion --seeds 0 1
+        --out runs/verdict/distortion --seeds 0 1 --step 14000
 
 Two kinds of record are read: a runs record (`{"runs": {ARM: {SEED: metrics}}}`, one scene:
 give `--scene`) and a verdict record written by `sweep_verdict.py` (ARM is `mixnerf` or
 `baseline`, the first and second sweep). Each `metrics.json` written says which record it
-came from (`"collected_from"`); an existing seed folder is an error, never overwritten.
+came from (`"collected_from"`); an existing seed folder is an error, never overwritten. A
+verdict record keeps no step count: `--step` writes the one its title gives, so that
+`sweep_verdict.py` can check the pairs' steps.
 """
 
 import argparse
@@ -51,7 +53,14 @@ def from_verdict_record(record: dict[str, Any], arm: str, scene: str | None) -> 
     return scenes
 
 
-def collect(record_path: Path, arm: str, out: Path, scene: str | None, seeds: list[int] | None) -> list[Path]:
+def collect(
+    record_path: Path,
+    arm: str,
+    out: Path,
+    scene: str | None,
+    seeds: list[int] | None,
+    step: int | None = None,
+) -> list[Path]:
     record = json.loads(record_path.read_text())
     if "runs" in record:
         scenes = from_runs_record(record, arm, scene)
@@ -70,8 +79,13 @@ def collect(record_path: Path, arm: str, out: Path, scene: str | None, seeds: li
             folder = out / name / f"seed_{seed}"
             if folder.exists():
                 raise SystemExit(f"{folder}: exists already (nothing written over)")
-            folder.mkdir(parents=True)
             metrics = {**runs[seed], "collected_from": f"{record_path.name}, arm {arm}"}
+            if step is not None:
+                if metrics.get("step", step) != step:
+                    said = metrics["step"]
+                    raise SystemExit(f"{name}/seed_{seed}: the record says step {said}, not {step}")
+                metrics["step"] = step
+            folder.mkdir(parents=True)
             (folder / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
             written.append(folder)
     return written
@@ -84,10 +98,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="the sweep-like folder to write into")
     parser.add_argument("--scene", help="the scene (a runs record needs it; filters a verdict record)")
     parser.add_argument("--seeds", type=int, nargs="+", help="only these seeds (default: all the arm has)")
+    parser.add_argument(
+        "--step",
+        type=int,
+        help="the step the runs ended at, where the record keeps none (a verdict record's title says it)",
+    )
     args = parser.parse_args(argv)
     if not args.record.is_file():
         raise SystemExit(f"{args.record}: no such record")
-    for folder in collect(args.record, args.arm, args.out, args.scene, args.seeds):
+    for folder in collect(args.record, args.arm, args.out, args.scene, args.seeds, args.step):
         print(f"wrote {folder / 'metrics.json'}")
     return 0
 

@@ -19,13 +19,18 @@ def test_the_probe_verdict_is_made_again_from_two_records(tmp_path):
     # whose figures the shipped config's runs record holds as well: laid out from the two
     # records, the pairs must give the probe's table to the last digit.
     probe = json.loads((RESULTS / "fern_probe_distortion.json").read_text())
-    collect_runs.collect(RESULTS / "fern_probe_distortion.json", "mixnerf", tmp_path / "first", None, None)
+    collect_runs.collect(
+        RESULTS / "fern_probe_distortion.json", "mixnerf", tmp_path / "first", None, None, step=14000
+    )
     collect_runs.collect(
         RESULTS / "full_res_fern_noramp_newval_runs.json", "noramp", tmp_path / "second", "fern", [0, 1, 2]
     )
     first, _ = sweep_verdict.read_sweep(tmp_path / "first")
     second, _ = sweep_verdict.read_sweep(tmp_path / "second")
     assert sorted(first["fern"]) == [0, 1] and sorted(second["fern"]) == [0, 1, 2]
+    # Seed 2 has no pair; seeds 0 and 1 are paired at 14,000 steps each, without a note.
+    notes = sweep_verdict.pairing_notes(first, second, ("a", "b"))
+    assert notes == ["fern/seed_2: finished in one sweep only, left out of the pairs"]
     table = sweep_verdict.verdicts(first, second)
     assert json.loads(json.dumps(table)) == probe["scenes"]
 
@@ -38,6 +43,9 @@ def test_a_seed_folder_is_never_written_over_and_bad_requests_are_refused(tmp_pa
     with pytest.raises(SystemExit, match="exists already"):
         collect_runs.collect(record, "noramp", tmp_path, "fern", [3])
     assert (tmp_path / "fern" / "seed_3" / "metrics.json").read_text() == written
+    with pytest.raises(SystemExit, match="says step 14000, not 7000"):
+        collect_runs.collect(record, "noramp", tmp_path / "other", "fern", [4], step=7000)
+    assert not (tmp_path / "other").exists()
     with pytest.raises(SystemExit, match="--scene"):
         collect_runs.collect(record, "noramp", tmp_path / "other", None, None)
     with pytest.raises(SystemExit, match="no arm 'ramp'"):
