@@ -9,12 +9,14 @@ verdict can pair new runs with runs made earlier without training them again:
     python benchmarks/collect_runs.py benchmarks/results/fern_probe_distortion.json mixnerf \
         --out runs/verdict/distortion --seeds 0 1 --step 14000
 
-Two kinds of record are read: a runs record (`{"runs": {ARM: {SEED: metrics}}}`, one scene:
-give `--scene`) and a verdict record written by `sweep_verdict.py` (ARM is `mixnerf` or
-`baseline`, the first and second sweep). Each `metrics.json` written says which record it
-came from (`"collected_from"`); an existing seed folder is an error, never overwritten. A
-verdict record keeps no step count: `--step` writes the one its title gives, so that
-`sweep_verdict.py` can check the pairs' steps.
+Two kinds of record are read: a runs record (`{"command": ..., "runs": {ARM: {SEED: m}}}`, one
+scene, which `--scene` names and the command must train) and a verdict record written by
+`sweep_verdict.py --out` (ARM is `mixnerf` or `baseline`, the first and second sweep; a run
+it lists without figures, one that diverged, is written with null figures and stays failed).
+Each `metrics.json` written says which record it came from (`"collected_from"`); an existing
+seed folder is an error, and nothing is written unless every seed can be. A verdict record
+keeps no step count: `--step` writes the one its title gives, so that `sweep_verdict.py` can
+check the pairs' steps.
 """
 
 import argparse
@@ -25,9 +27,24 @@ from typing import Any
 SPLITS = ("val", "test")
 
 
+def _is_runs_record(record: dict[str, Any]) -> bool:
+    runs = record.get("runs")
+    return isinstance(runs, dict) and "scenes" not in record and all(
+        isinstance(arm, dict) and all(isinstance(m, dict) for m in arm.values()) for arm in runs.values()
+    )
+
+
+def _is_verdict_record(record: dict[str, Any]) -> bool:
+    return isinstance(record.get("scenes"), dict) and "names" in record and "unfinished" in record
+
+
 def from_runs_record(record: dict[str, Any], arm: str, scene: str | None) -> dict[str, dict[int, Any]]:
     if scene is None:
         raise SystemExit("a runs record holds one scene's runs: say which with --scene")
+    # The record names its scene only in the command that made it: the label must be there.
+    if f"--scenes {scene}" not in record.get("command", ""):
+        command = record.get("command", "")
+        raise SystemExit(f"the record's command does not train --scenes {scene}: {command!r}")
     if arm not in record["runs"]:
         raise SystemExit(f"no arm {arm!r} in the record (it has {', '.join(sorted(record['runs']))})")
     return {scene: {int(seed): metrics for seed, metrics in record["runs"][arm].items()}}
@@ -42,11 +59,13 @@ def from_verdict_record(record: dict[str, Any], arm: str, scene: str | None) -> 
     for name, row in record["scenes"].items():
         if scene is not None and name != scene:
             continue
-        runs: dict[int, Any] = {}
+        # Every run the arm finished, with a figure or not: a run that diverged has none
+        # (null), and must stay a failed run when the verdict is made again.
+        runs: dict[int, Any] = {int(seed): {"val": None, "test": None} for seed in row["runs"][arm]}
         for split in SPLITS:
             for key, column in row[split].items():
                 for seed, value in column[arm].items():
-                    runs.setdefault(int(seed), {"val": {}, "test": {}})[split][key] = value
+                    runs[int(seed)][split] = {**(runs[int(seed)][split] or {}), key: value}
         scenes[name] = runs
     if not scenes:
         raise SystemExit(f"no scene {scene!r} in the record (it has {', '.join(sorted(record['scenes']))})")
@@ -61,14 +80,15 @@ def collect(
     seeds: list[int] | None,
     step: int | None = None,
 ) -> list[Path]:
+    """Writes one `metrics.json` per seed of `arm`; checks everything before writing anything."""
     record = json.loads(record_path.read_text())
-    if "runs" in record:
+    if _is_runs_record(record):
         scenes = from_runs_record(record, arm, scene)
-    elif "scenes" in record:
+    elif _is_verdict_record(record):
         scenes = from_verdict_record(record, arm, scene)
     else:
-        raise SystemExit(f"{record_path}: neither a runs record nor a verdict record")
-    written = []
+        raise SystemExit(f"{record_path}: neither a runs record nor a verdict record (of sweep_verdict.py)")
+    planned = []
     for name, runs in scenes.items():
         missing = sorted(set(seeds or []) - set(runs))
         if missing:
@@ -78,17 +98,19 @@ def collect(
                 continue
             folder = out / name / f"seed_{seed}"
             if folder.exists():
-                raise SystemExit(f"{folder}: exists already (nothing written over)")
+                raise SystemExit(f"{folder}: exists already (nothing written)")
             metrics = {**runs[seed], "collected_from": f"{record_path.name}, arm {arm}"}
             if step is not None:
                 if metrics.get("step", step) != step:
                     said = metrics["step"]
-                    raise SystemExit(f"{name}/seed_{seed}: the record says step {said}, not {step}")
+                    raise SystemExit(f"{name}/seed_{seed}: the record says step {said}, not {step}"
+                                     " (nothing written)")
                 metrics["step"] = step
-            folder.mkdir(parents=True)
-            (folder / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
-            written.append(folder)
-    return written
+            planned.append((folder, metrics))
+    for folder, metrics in planned:
+        folder.mkdir(parents=True)
+        (folder / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    return [folder for folder, _ in planned]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -63,8 +63,9 @@ python benchmarks/skipping_step.py --config builtin --repeats "$REPEATS" --out "
     model.num_coarse_samples=128 model.num_fine_samples=128 train.batch_size=4096 \
     occupancy.box_radius=1.3 ${PAPER[@]:+"${PAPER[@]}"}
 
-# llff3_grid has trained without the lambda_C ramp since 2026-12-06; the CPU grid-fern curves of
-# benchmarks/grid_field.md were made with it (add loss.lambda_colour_start=4.0 to FERN to compare).
+# llff3_grid has trained without the lambda_C ramp and with the distortion loss since 2026-12-06;
+# the CPU grid-fern curves of benchmarks/grid_field.md were made with the ramp and without the
+# loss (add loss.lambda_colour_start=4.0 and loss.distortion_weight=0 to FERN to compare).
 say "fern 3-view, grid config, full resolution: PSNR against step time"
 fern_overrides=$(IFS=,; echo "${FERN[*]}")
 python benchmarks/error_vs_time.py --data-dir "$DATA" \

@@ -20,7 +20,8 @@ Spec syntax (`error_vs_time.py`, `sample_count.py`):
     --variant NAME=FILE.toml[:key=value,...]   a config file used for every scene it fits (see below)
 
 Override lists are comma-separated `section.key=value` items, parsed like the overrides of
-`load_config`; the macros `@baseline` (`method = "mipnerf"`: the mip-NeRF baseline)
+`load_config`; the macros `@baseline` (`method = "mipnerf"` and no distortion loss: the
+mip-NeRF baseline, as the `mipnerf_*.toml` configs)
 and `@fast` (32 + 32 samples, bfloat16 matrix products) expand in place.
 
 A variant that names a file takes everything but the data from that file and the `[data]`
@@ -74,7 +75,9 @@ SCENE_PRESETS = {
 }
 
 MACROS = {
-    "@baseline": ("method=mipnerf",),
+    # As the mipnerf_*.toml baselines: without the mixture and without the distortion loss
+    # (the LLFF family's recommended configs add it for MixNeRF only).
+    "@baseline": ("method=mipnerf", "loss.distortion_weight=0"),
     "@fast": (
         "model.num_coarse_samples=32",
         "model.num_fine_samples=32",
