@@ -12,7 +12,7 @@ verdict can pair new runs with runs made earlier without training them again:
 Two kinds of record are read: a runs record (`{"command": ..., "runs": {ARM: {SEED: m}}}`, one
 scene, which `--scene` names and the command must train) and a verdict record written by
 `sweep_verdict.py --out` (ARM is `mixnerf` or `baseline`, the first and second sweep; a run
-it lists without figures, one that diverged, is written with null figures and stays failed).
+it lists without figures, one that diverged, is written without figures and stays failed).
 Each `metrics.json` written says which record it came from (`"collected_from"`); an existing
 seed folder is an error, and nothing is written unless every seed can be. A verdict record
 keeps no step count: `--step` writes the one its title gives, so that `sweep_verdict.py` can
@@ -21,10 +21,13 @@ check the pairs' steps.
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
-SPLITS = ("val", "test")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from sweep_verdict import runs_from_record  # noqa: E402
 
 
 def _is_runs_record(record: dict[str, Any]) -> bool:
@@ -55,18 +58,12 @@ def from_verdict_record(record: dict[str, Any], arm: str, scene: str | None) -> 
         raise SystemExit(
             f"a verdict record's arms are 'mixnerf' and 'baseline' (its first and second), not {arm!r}"
         )
-    scenes = {}
-    for name, row in record["scenes"].items():
-        if scene is not None and name != scene:
-            continue
-        # Every run the arm finished, with a figure or not: a run that diverged has none
-        # (null), and must stay a failed run when the verdict is made again.
-        runs: dict[int, Any] = {int(seed): {"val": None, "test": None} for seed in row["runs"][arm]}
-        for split in SPLITS:
-            for key, column in row[split].items():
-                for seed, value in column[arm].items():
-                    runs[int(seed)][split] = {**(runs[int(seed)][split] or {}), key: value}
-        scenes[name] = runs
+    # `sweep_verdict.runs_from_record` keeps every run an arm finished, a run without figures
+    # (one that diverged) included, so that it stays a failed run.
+    first, second = runs_from_record(record)
+    scenes = {name: runs for name, runs in (first if arm == "mixnerf" else second).items()}
+    if scene is not None:
+        scenes = {name: runs for name, runs in scenes.items() if name == scene}
     if not scenes:
         raise SystemExit(f"no scene {scene!r} in the record (it has {', '.join(sorted(record['scenes']))})")
     return scenes

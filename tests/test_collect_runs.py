@@ -80,7 +80,7 @@ def test_a_run_without_figures_stays_a_failed_run(tmp_path):
         collect_runs.collect(record, "mixnerf", tmp_path / "first", "lego", None)
     collect_runs.collect(record, "mixnerf", tmp_path / "first", "fern", [1, 2], step=14000)
     written = json.loads((tmp_path / "first" / "fern" / "seed_2" / "metrics.json").read_text())
-    assert written["val"] is None and written["test"] is None and written["step"] == 14000
+    assert not written["val"] and not written["test"] and written["step"] == 14000
     assert sorted(p.name for p in (tmp_path / "first" / "fern").iterdir()) == ["seed_1", "seed_2"]
     arguments = [str(record), "baseline", "--out", str(tmp_path / "second"), "--step", "14000"]
     assert collect_runs.main(arguments) == 0
