@@ -18,7 +18,10 @@ trains) and the fine level's termination distance:
   not scale with beta).
 
 Also timed, for the first seed (unless `--no-time`): the predictive pass over the test views
-against an ordinary (dense) render of them, both compiled beforehand, with the same chunk.
+against an ordinary (dense) render of them, both compiled beforehand, with the same chunk,
+and the pass's colour quantile solve alone. `--cost-only` times a run and scores nothing:
+
+    python benchmarks/calibration.py --runs RUN --data-dir ../shared/data --cost-only --tag cost_fern504
 
     python benchmarks/calibration.py --data-dir ../shared/data --seeds 0 1 2
 
@@ -38,6 +41,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -95,9 +99,40 @@ def timed_passes(model: mx.MixNeRF, views: Views, dataset, chunk: int) -> dict[s
         started = time.perf_counter()
         run_pass(views)
         seconds[f"{name}_s_per_view"] = (time.perf_counter() - started) / views.num_views
+    seconds["colour_quantiles_s_per_view"] = colour_quantile_seconds(model, views, dataset, chunk)
     seconds["ratio"] = seconds["predictive_s_per_view"] / seconds["render_s_per_view"]
     seconds["ratio_with_mode"] = seconds["predictive_with_mode_s_per_view"] / seconds["render_s_per_view"]
+    seconds["ratio_without_colour_quantiles"] = (
+        seconds["predictive_s_per_view"] - seconds["colour_quantiles_s_per_view"]
+    ) / seconds["render_s_per_view"]
     return seconds
+
+
+def colour_quantile_seconds(model: mx.MixNeRF, views: Views, dataset, chunk: int) -> float:
+    """Seconds per view of the predictive pass's colour quantile solve alone: the median and
+    both ends of each interval (9 levels, 3 channels), on the views' own mixtures, `chunk`
+    rays per compiled call as in the pass (the mixtures are rendered first, untimed)."""
+    rays = rays_for_views(views, dataset.near, dataset.far).reshape(-1)
+    mixtures = mx.uncertainty.collect_mixtures(model, rays, chunk)
+    levels = mx.uncertainty.IntervalLevels.raw(MASSES)
+    stacked = jnp.concatenate([jnp.full((1, 3), 0.5), levels.colour_lower, levels.colour_upper])
+    solve = eqx.filter_jit(lambda mixture: mixture.channel_quantiles(stacked))
+    total = mixtures.location.shape[0]
+
+    def piece(start: int) -> mx.uncertainty.ColourMixture:
+        # The pass pads its last chunk to `chunk` rays the same way.
+        def cut(x):
+            part = x[start : start + chunk]
+            return jnp.concatenate([part, part[:1].repeat(chunk - part.shape[0], 0)])
+
+        return jax.tree_util.tree_map(cut, mixtures)
+
+    pieces = [piece(start) for start in range(0, total, chunk)]
+    jax.block_until_ready(solve(pieces[0]))
+    started = time.perf_counter()
+    for piece in pieces:
+        jax.block_until_ready(solve(piece))
+    return (time.perf_counter() - started) / views.num_views
 
 
 def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dict[str, Any]:
@@ -270,8 +305,9 @@ def table(results: list[dict[str, Any]]) -> str:
 
 def cost_table(results: list[dict[str, Any]]) -> str:
     lines = [
-        "| scene | test view | render s/view | predictive s/view (ratio) | with the mode s/view (ratio) |",
-        "|---|---|---|---|---|",
+        "| scene | test view | render s/view | predictive s/view (ratio) | with the mode s/view (ratio) "
+        "| its colour quantile solve s/view | the pass without it (ratio) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for result in results:
         cost = result["cost"]
@@ -281,9 +317,48 @@ def cost_table(results: list[dict[str, Any]]) -> str:
         lines.append(
             f"| {result['scene']} | {size} | {cost['render_s_per_view']:.3f} | "
             f"{cost['predictive_s_per_view']:.3f} ({cost['ratio']:.2f}) | "
-            f"{cost['predictive_with_mode_s_per_view']:.3f} ({cost['ratio_with_mode']:.2f}) |"
+            f"{cost['predictive_with_mode_s_per_view']:.3f} ({cost['ratio_with_mode']:.2f}) | "
+            + (
+                f"{cost['colour_quantiles_s_per_view']:.3f} | "
+                f"{cost['predictive_s_per_view'] - cost['colour_quantiles_s_per_view']:.3f} "
+                f"({cost['ratio_without_colour_quantiles']:.2f}) |"
+                if "colour_quantiles_s_per_view" in cost
+                else "not measured | |"
+            )
         )
     return "\n".join(lines)
+
+
+def cost_only(args: argparse.Namespace) -> None:
+    """Time the passes on the first of `--runs` and write only the cost table."""
+    try:
+        run = mx.runs.restore_run(args.runs[0], data_dir=args.data_dir)
+    except (mx.ConfigError, mx.runs.CheckpointError) as error:
+        raise SystemExit(f"error: {error}") from None
+    test = evenly(run.dataset.test, args.test_views)
+    result = {
+        "scene": run.config.data.scene,
+        "seed": run.config.train.seed,
+        "config": run.config.name,
+        "run_dir": str(args.runs[0]),
+        "steps": run.step,
+        "test_views": list(test.ids),
+        "test_size": [test.width, test.height],
+        "chunk": args.chunk,
+        "cost": timed_passes(run.model, test, run.dataset, args.chunk),
+    }
+    stem = f"calibration_{platform_tag()}{'_' + args.tag if args.tag else ''}"
+    write_json(RESULTS / f"{stem}.json", {"results": [result]})
+    text = (
+        f"Cost of the predictive pass against an ordinary dense render (both compiled; chunk {args.chunk}), "
+        f"{result['scene']} seed {result['seed']}: {result['run_dir']} "
+        f"({result['config']}, step {result['steps']}), "
+        f"{len(result['test_views'])} test views:\n\n"
+        + cost_table([result])
+        + f"\n\nMachine: {machine_info()['platform']}, {machine_info()['cpu_count']} CPUs.\n"
+    )
+    write_markdown(RESULTS / f"{stem}.md", text)
+    print(text)
 
 
 def main() -> None:
@@ -310,7 +385,17 @@ def main() -> None:
         default=True,
         help="time the passes on the first seed or run (--no-time on a loaded machine)",
     )
+    parser.add_argument(
+        "--cost-only",
+        action="store_true",
+        help="with --runs: time the passes of the first run (on --test-views) and score nothing",
+    )
     args = parser.parse_args()
+    if args.cost_only:
+        if not args.runs:
+            raise SystemExit("error: --cost-only times trained runs: give them with --runs")
+        cost_only(args)
+        return
     if args.runs:
         check_runs(args.runs)
         try:
