@@ -19,9 +19,10 @@ trains) and the fine level's termination distance:
 
 Also timed, for the first seed (unless `--no-time`): the predictive pass over the test views
 against an ordinary (dense) render of them, both compiled beforehand, with the same chunk,
-and the pass's colour quantile solve alone. `--cost-only` times a run and scores nothing:
+and the pass's colour quantile solve alone. `--cost-only` times one run and scores nothing:
 
-    python benchmarks/calibration.py --runs RUN --data-dir ../shared/data --cost-only --tag cost_fern504
+    python benchmarks/calibration.py --runs runs/fern_dist5/a/fern/seed_2 --data-dir ../shared/data \\
+        --cost-only --test-views 1 --tag cost_fern504_split
 
     python benchmarks/calibration.py --data-dir ../shared/data --seeds 0 1 2
 
@@ -55,6 +56,7 @@ from harness import (
 )
 
 import mixnerf_eqx as mx
+from mixnerf_eqx._nn.chunks import map_ray_chunks
 from mixnerf_eqx.data import Views, load_dataset, rays_for_views
 
 MASSES = (0.5, 0.8, 0.9, 0.95)
@@ -110,29 +112,24 @@ def timed_passes(model: mx.MixNeRF, views: Views, dataset, chunk: int) -> dict[s
 
 def colour_quantile_seconds(model: mx.MixNeRF, views: Views, dataset, chunk: int) -> float:
     """Seconds per view of the predictive pass's colour quantile solve alone: the median and
-    both ends of each interval (9 levels, 3 channels), on the views' own mixtures, `chunk`
-    rays per compiled call as in the pass (the mixtures are rendered first, untimed)."""
-    rays = rays_for_views(views, dataset.near, dataset.far).reshape(-1)
-    mixtures = mx.uncertainty.collect_mixtures(model, rays, chunk)
+    both ends of each interval (9 levels, 3 channels) on each view's own mixtures, chunked as
+    the pass chunks them (`map_ray_chunks`: one view at a time, at most `chunk` rays per
+    compiled call, the last chunk padded with the last ray). The mixtures of a view are
+    rendered first, untimed."""
     levels = mx.uncertainty.IntervalLevels.raw(MASSES)
     stacked = jnp.concatenate([jnp.full((1, 3), 0.5), levels.colour_lower, levels.colour_upper])
     solve = eqx.filter_jit(lambda mixture: mixture.channel_quantiles(stacked))
-    total = mixtures.location.shape[0]
-
-    def piece(start: int) -> mx.uncertainty.ColourMixture:
-        # The pass pads its last chunk to `chunk` rays the same way.
-        def cut(x):
-            part = x[start : start + chunk]
-            return jnp.concatenate([part, part[:1].repeat(chunk - part.shape[0], 0)])
-
-        return jax.tree_util.tree_map(cut, mixtures)
-
-    pieces = [piece(start) for start in range(0, total, chunk)]
-    jax.block_until_ready(solve(pieces[0]))
-    started = time.perf_counter()
-    for piece in pieces:
-        jax.block_until_ready(solve(piece))
-    return (time.perf_counter() - started) / views.num_views
+    mixture_of = eqx.filter_jit(lambda rays: mx.uncertainty.predictive(model, rays).colour)
+    seconds = 0.0
+    for index in range(views.num_views):
+        rays = rays_for_views(views.select([index]), dataset.near, dataset.far)
+        chunks, _ = map_ray_chunks(lambda piece, real, extra: mixture_of(piece), rays, chunk)
+        jax.block_until_ready(solve(chunks[0]))  # compiled (once per chunk size) before the clock
+        started = time.perf_counter()
+        for mixture in chunks:
+            jax.block_until_ready(solve(mixture))
+        seconds += time.perf_counter() - started
+    return seconds / views.num_views
 
 
 def run_scene(name: str, seed: int, args: argparse.Namespace, work: Path) -> dict[str, Any]:
@@ -213,12 +210,22 @@ def evenly(views: Views, count: int) -> Views:
 def score(model: mx.MixNeRF, dataset, args: argparse.Namespace, timed: bool) -> dict[str, Any]:
     """Fit every correction on the validation views and score each on the test views."""
     val, test = dataset.split("val"), evenly(dataset.test, args.test_views)
-    pit = mx.uncertainty.calibration_pit(model, val, dataset.near, dataset.far, args.chunk, max_pixels=args.calibration_pixels)
+    pit = mx.uncertainty.calibration_pit(
+        model, val, dataset.near, dataset.far, args.chunk, max_pixels=args.calibration_pixels
+    )
     picked = jax.tree_util.tree_map(
-        lambda x: x[np.sort(np.random.default_rng(0).choice(x.shape[0], min(x.shape[0], args.calibration_pixels), replace=False))],
+        lambda x: x[
+            np.sort(
+                np.random.default_rng(0).choice(
+                    x.shape[0], min(x.shape[0], args.calibration_pixels), replace=False
+                )
+            )
+        ],
         (rays_for_views(val, dataset.near, dataset.far).reshape(-1), jnp.asarray(val.images.reshape(-1, 3))),
     )
-    temperature = mx.uncertainty.fit_temperature(mx.uncertainty.collect_mixtures(model, picked[0], args.chunk), picked[1])
+    temperature = mx.uncertainty.fit_temperature(
+        mx.uncertainty.collect_mixtures(model, picked[0], args.chunk), picked[1]
+    )
     where = f"{val.num_views} validation views"
     depth_pit = pit["depth_cdf"] if pit["depth_cdf"].size else None
     fitted = {
@@ -226,7 +233,9 @@ def score(model: mx.MixNeRF, dataset, args: argparse.Namespace, timed: bool) -> 
         "temperature": (mx.uncertainty.Recalibration.raw(MASSES), temperature),
     }
     for method in ("isotonic", "conformal"):
-        recalibration = mx.uncertainty.Recalibration.fit(method, pit["colour_cdf"], depth_pit, MASSES, fitted_on=where)
+        recalibration = mx.uncertainty.Recalibration.fit(
+            method, pit["colour_cdf"], depth_pit, MASSES, fitted_on=where
+        )
         fitted[method] = (recalibration, 1.0)
     reports = {}
     for method, (recalibration, factor) in fitted.items():
@@ -290,8 +299,14 @@ def table(results: list[dict[str, Any]]) -> str:
             depth = "n/a"
             if reports[0]["depth_coverage"] is not None:
                 depth = _mean_sd([r["depth_coverage"]["0.9"]["pooled"] for r in reports], 3)
-            depth_ause = "n/a" if reports[0]["depth_ause"] is None else _mean_sd([r["depth_ause"] for r in reports], 3)
-            label = method if method != "temperature" else "temperature (T " + _mean_sd([run["temperature"] for run in runs], 2) + ")"
+            depth_ause = (
+                "n/a" if reports[0]["depth_ause"] is None else _mean_sd([r["depth_ause"] for r in reports], 3)
+            )
+            label = (
+                method
+                if method != "temperature"
+                else "temperature (T " + _mean_sd([run["temperature"] for run in runs], 2) + ")"
+            )
             lines.append(
                 f"| {scene} ({len(runs)}) | {label} | "
                 + " | ".join(cells)
@@ -388,12 +403,18 @@ def main() -> None:
     parser.add_argument(
         "--cost-only",
         action="store_true",
-        help="with --runs: time the passes of the first run (on --test-views) and score nothing",
+        help="with one --runs folder and a --tag: time the passes (on --test-views) and score nothing",
     )
     args = parser.parse_args()
     if args.cost_only:
-        if not args.runs:
-            raise SystemExit("error: --cost-only times trained runs: give them with --runs")
+        if not args.runs or len(args.runs) != 1:
+            raise SystemExit("error: --cost-only times one trained run: give exactly one with --runs")
+        if not args.tag:
+            raise SystemExit(
+                "error: --cost-only needs a --tag (its files must not replace the calibration's)"
+            )
+        if not args.time:
+            raise SystemExit("error: --cost-only only times: it cannot be combined with --no-time")
         cost_only(args)
         return
     if args.runs:

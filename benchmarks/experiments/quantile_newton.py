@@ -28,14 +28,14 @@ from mixnerf_eqx._predictive.distribution import _inverse_scale, channel_quantil
 from mixnerf_eqx.data import rays_for_views
 
 LEVELS = np.array([0.5, 0.25, 0.1, 0.05, 0.025, 0.75, 0.9, 0.95, 0.975], np.float32)
-# name: (Dirichlet concentration of the coefficients, scale range, locations in clusters)
+# name: (the coefficients' Dirichlet concentration, the scales' range (log-uniform), clustered)
 CASES = {
-    "like the test suite's": (1.0, (0.01, 0.5), False),
-    "sparse coefficients": (0.05, (0.001, 0.5), False),
-    "narrow components": (0.05, (1e-4, 1e-2), False),
-    "wide components": (1.0, (0.2, 3.0), False),
-    "scales 1e-5 to 1": (0.01, (1e-5, 1.0), False),
-    "clustered locations": (0.3, (1e-3, 0.05), True),
+    "Dirichlet 1, scales 0.01 to 0.5 (like the test suite's)": (1.0, (0.01, 0.5), False),
+    "Dirichlet 0.05, scales 0.001 to 0.5": (0.05, (0.001, 0.5), False),
+    "Dirichlet 0.05, scales 1e-4 to 0.01": (0.05, (1e-4, 1e-2), False),
+    "Dirichlet 1, scales 0.2 to 3": (1.0, (0.2, 3.0), False),
+    "Dirichlet 0.01, scales 1e-5 to 1": (0.01, (1e-5, 1.0), False),
+    "Dirichlet 0.3, scales 0.001 to 0.05, locations in 5 clusters": (0.3, (1e-3, 0.05), True),
 }
 
 
@@ -115,7 +115,10 @@ def accuracy(rays: int = 2000, components: int = 32) -> None:
     shipped = jax.jit(
         jax.vmap(lambda c, m, b: jax.vmap(channel_quantile, (0, None, None, None))(levels, c, m, b))
     )
-    print("| mixtures | shipped bisection | Newton, 6 steps | Newton on the logs, 6 steps |")
+    print(
+        "| mixtures (coefficients' Dirichlet concentration, scales) | shipped bisection "
+        "| Newton, 6 steps | Newton on the logs, 6 steps |"
+    )
     print("|---|---|---|---|")
     for name, (concentration, (smallest, largest), clustered) in CASES.items():
         coefficients = rng.dirichlet(np.full(components, concentration), size=rays).astype(np.float32)
