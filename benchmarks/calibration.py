@@ -19,10 +19,7 @@ trains) and the fine level's termination distance:
 
 Also timed, for the first seed (unless `--no-time`): the predictive pass over the test views
 against an ordinary (dense) render of them, both compiled beforehand, with the same chunk,
-and the pass's colour quantile solve alone. `--cost-only` times one run and scores nothing:
-
-    python benchmarks/calibration.py --runs runs/fern_dist5/a/fern/seed_2 --data-dir ../shared/data \\
-        --cost-only --test-views 1 --tag cost_fern504_split
+and the pass's colour quantile solve alone.
 
     python benchmarks/calibration.py --data-dir ../shared/data --seeds 0 1 2
 
@@ -31,6 +28,11 @@ checkpoints scored the same way, on an evenly spaced subset of the test views if
 
     python benchmarks/calibration.py --runs runs/full_lego/mixnerf/lego/seed_0 ... \\
         --data-dir ../shared/data --test-views 5 --no-time --tag lego400
+
+or, to time one such run and score nothing (`--cost-only`; a tag is required):
+
+    python benchmarks/calibration.py --runs runs/fern_dist5/a/fern/seed_2 --data-dir ../shared/data \\
+        --cost-only --test-views 1 --tag cost_fern504_split
 
 Results: `results/calibration_cpu.json` and `results/calibration_cpu.md`.
 """
