@@ -58,7 +58,6 @@ from harness import (
 )
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._nn.chunks import map_ray_chunks
 from mixnerf_eqx.data import Views, load_dataset, rays_for_views
 
 MASSES = (0.5, 0.8, 0.9, 0.95)
@@ -112,20 +111,33 @@ def timed_passes(model: mx.MixNeRF, views: Views, dataset, chunk: int) -> dict[s
     return seconds
 
 
+def quantile_chunks(
+    model: mx.MixNeRF, view: Views, dataset, chunk: int
+) -> list[mx.uncertainty.ColourMixture]:
+    """One view's colour mixtures in the chunks the predictive pass solves them in: at most
+    `chunk` rays each (never more than the view has), the last padded with the last ray."""
+    rays = rays_for_views(view, dataset.near, dataset.far).reshape(-1)
+    mixtures = mx.uncertainty.collect_mixtures(model, rays, chunk)
+    count = mixtures.location.shape[0]
+    size = max(1, min(chunk, count))
+    pad = -count % size
+    padded = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), mixtures)
+    return [
+        jax.tree_util.tree_map(lambda x, start=start: x[start : start + size], padded)
+        for start in range(0, count, size)
+    ]
+
+
 def colour_quantile_seconds(model: mx.MixNeRF, views: Views, dataset, chunk: int) -> float:
     """Seconds per view of the predictive pass's colour quantile solve alone: the median and
-    both ends of each interval (9 levels, 3 channels) on each view's own mixtures, chunked as
-    the pass chunks them (`map_ray_chunks`: one view at a time, at most `chunk` rays per
-    compiled call, the last chunk padded with the last ray). The mixtures of a view are
-    rendered first, untimed."""
+    both ends of each interval (9 levels, 3 channels) on each view's own mixtures, in the
+    pass's chunks (`quantile_chunks`, rendered first, untimed)."""
     levels = mx.uncertainty.IntervalLevels.raw(MASSES)
     stacked = jnp.concatenate([jnp.full((1, 3), 0.5), levels.colour_lower, levels.colour_upper])
     solve = eqx.filter_jit(lambda mixture: mixture.channel_quantiles(stacked))
-    mixture_of = eqx.filter_jit(lambda rays: mx.uncertainty.predictive(model, rays).colour)
     seconds = 0.0
     for index in range(views.num_views):
-        rays = rays_for_views(views.select([index]), dataset.near, dataset.far)
-        chunks, _ = map_ray_chunks(lambda piece, real, extra: mixture_of(piece), rays, chunk)
+        chunks = quantile_chunks(model, views.select([index]), dataset, chunk)
         jax.block_until_ready(solve(chunks[0]))  # compiled (once per chunk size) before the clock
         started = time.perf_counter()
         for mixture in chunks:
