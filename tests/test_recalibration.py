@@ -2,7 +2,8 @@
 what eval writes for a user to take away (depth arrays, point clouds).
 
 References: predictive distributions whose truth is known (Laplace and Laplace-mixture draws
-in numpy, float64), the closed-form coverage of a split-conformal interval (`k / (n + 1)`),
+in numpy, float64), the closed-form coverage of a split-conformal interval (the new value's
+rank among `n + 1` is uniform) and the closed-form quantiles of a Beta(2, 1) distribution,
 a direct loop for the calibration error, and a plane whose world depth is known for the NDC
 conversion.
 """
@@ -22,7 +23,7 @@ from mixnerf_eqx._predictive.recalibration import (
     IsotonicMap,
     Recalibration,
     calibration_error,
-    conformal_masses,
+    conformal_levels,
     minimum_calibration_pixels,
 )
 from mixnerf_eqx.data import Views
@@ -62,26 +63,48 @@ def test_recalibrated_intervals_hold_their_mass_where_the_raw_ones_do_not():
         assert covered(test, raw, index) < mass - 0.1  # the check above can fail
 
 
-def test_split_conformal_coverage_is_k_over_n_plus_one():
-    # With n = 10 calibration scores and mass 0.9, the interval ends at the 10th smallest
-    # score: a new exchangeable pixel is covered with probability exactly 10 / 11. The
-    # empirical 90% quantile (the 9th) would cover 9 / 11 = 0.818.
+def test_split_conformal_coverage_follows_the_ranks_of_its_ends():
+    # With n = 10 calibration values and mass 0.5, the ends are the floor(11 / 4) = 2nd and
+    # the ceil(33 / 4) = 9th smallest: a new exchangeable value lies between them when 2 to 8
+    # of the others lie below it, probability exactly 7 / 11. With n = 19 and mass 0.9 the
+    # ends are the 1st and the 19th: 18 / 20, the mass itself.
     rng = np.random.default_rng(1)
     trials = 40_000
-    calibration = rng.uniform(size=(trials, 10))
-    new = rng.uniform(size=trials)
-    hits = np.empty(trials, bool)
-    for trial in range(trials):
-        spread = conformal_masses(calibration[trial], (0.9,))[0, 0]
-        hits[trial] = abs(2 * new[trial] - 1) <= spread
-    assert abs(hits.mean() - 10 / 11) < 4 * math.sqrt((10 / 11) * (1 / 11) / trials)
+    for count, mass, expected in ((10, 0.5, 7 / 11), (19, 0.9, 18 / 20)):
+        calibration = rng.uniform(size=(trials, count))
+        new = rng.uniform(size=trials)
+        hits = np.empty(trials, bool)
+        for trial in range(trials):
+            lower, upper = conformal_levels(calibration[trial], (mass,))
+            hits[trial] = lower[0, 0] <= new[trial] <= upper[0, 0]
+        assert abs(hits.mean() - expected) < 4 * math.sqrt(expected * (1 - expected) / trials), count
+
+
+def test_conformal_ends_follow_truths_that_lean_to_one_side():
+    # PIT values from Beta(2, 1) (density 2u: truths lean above the model's median). The
+    # equal-tailed ends converge to its quantiles sqrt((1 -+ m) / 2), and the interval holds
+    # its mass on new values; a central interval (one score |2u - 1| for both ends) holding
+    # the same mass must be wider.
+    rng = np.random.default_rng(7)
+    calibration, new = rng.beta(2.0, 1.0, (20_000, 3)), rng.beta(2.0, 1.0, (200_000, 3))
+    fitted = Recalibration.fit("conformal", calibration, masses=MASSES)
+    for index, mass in enumerate(MASSES):
+        lower, upper = fitted.colour_lower[index], fitted.colour_upper[index]
+        assert np.allclose(lower, math.sqrt((1 - mass) / 2), atol=0.01), mass
+        assert np.allclose(upper, math.sqrt((1 + mass) / 2), atol=0.01), mass
+        assert abs(covered(new, fitted, index) - mass) < 0.01, mass
+        # The central interval of this mass: |2u - 1| <= q with P = mass under density 2u,
+        # q solving ((1 + q)^2 - (1 - q)^2) / 4 = q = mass: width q = mass in PIT levels.
+        assert np.all(upper - lower < mass - 0.02), mass
 
 
 def test_too_few_calibration_pixels_and_bad_masses_are_clear_errors():
-    assert minimum_calibration_pixels(0.95) == 19 and minimum_calibration_pixels(0.5) == 1
-    with pytest.raises(ValueError, match="18 calibration pixels are too few .* at least 19"):
-        Recalibration.fit("conformal", np.full((18, 3), 0.5))
-    Recalibration.fit("conformal", np.full((19, 3), 0.5))
+    assert minimum_calibration_pixels(0.95) == 39 and minimum_calibration_pixels(0.5) == 3
+    assert minimum_calibration_pixels(0.9) == 19
+    with pytest.raises(ValueError, match="38 calibration pixels are too few .* at least 39"):
+        Recalibration.fit("conformal", np.full((38, 3), 0.5))
+    fitted = Recalibration.fit("conformal", np.full((39, 3), 0.5))
+    assert fitted.unbounded_masses() == {"colour": [], "depth": []}
     for masses in ((0.5, 1.0), (0.0,), (), (-0.2,)):
         with pytest.raises(ValueError, match="interval mass"):
             Recalibration.fit("isotonic", np.full((50, 3), 0.5), masses=masses)
@@ -335,15 +358,20 @@ def test_recalibration_round_trips_through_json():
     assert jax.tree_util.tree_structure(levels) == jax.tree_util.tree_structure(mx.uncertainty.IntervalLevels.raw(MASSES))
 
 
-def test_a_conformal_mass_of_one_gives_an_interval_without_bound():
+def test_conformal_ends_past_the_support_are_without_bound():
     from test_predictive import as_mixture, random_mixtures
 
-    # 30% of the calibration truths lie where the model puts no mass (PIT values of exactly
-    # 1): the 90% interval must cover them too, so its ends are unbounded; the 50% one not.
+    # 30% of the calibration truths lie above where the model puts mass (PIT values of
+    # exactly 1): each interval's upper end must cover them too, so it is unbounded, while
+    # the lower ends stay bounded (the 50% interval's at the 300th of 1,200 values, the
+    # 90% one's at the 60th, both among the uniform ones).
     pit = np.concatenate([np.random.default_rng(9).uniform(size=(840, 3)), np.ones((360, 3))])
     fitted = Recalibration.fit("conformal", pit, pit[:, 0], masses=(0.5, 0.9))
-    assert fitted.unbounded_masses() == {"colour": [0.9], "depth": [0.9]}
-    assert np.all(fitted.colour_lower[1] == 0.0) and np.all(fitted.colour_upper[1] == 1.0)
+    assert fitted.unbounded_masses() == {"colour": [0.5, 0.9], "depth": [0.5, 0.9]}
+    assert np.all(fitted.colour_upper == 1.0) and np.all(fitted.depth_upper == 1.0)
+    ordered = np.sort(pit, axis=0)
+    np.testing.assert_array_equal(fitted.colour_lower, ordered[[299, 59]])
+    np.testing.assert_array_equal(fitted.depth_lower, ordered[[299, 59], 0])
     coefficients, location, scale = random_mixtures(np.random.default_rng(10), 5, 4)
     weights = jnp.asarray(np.random.default_rng(11).uniform(0.1, 1.0, (5, 4)), jnp.float32)
     edges = jnp.broadcast_to(jnp.linspace(2.0, 6.0, 5, dtype=jnp.float32), (5, 5))
@@ -355,12 +383,17 @@ def test_a_conformal_mass_of_one_gives_an_interval_without_bound():
         acc=jnp.ones((5,)),
     )
     summary = mx.uncertainty.summarise(prediction, (0.5, 0.9), levels=fitted.interval_levels())
-    assert np.all(np.asarray(summary.colour_lower[1]) <= 0.0) and np.all(np.asarray(summary.colour_upper[1]) >= 1.0)
-    np.testing.assert_array_equal(np.asarray(summary.depth_lower[1]), 2.0)
-    np.testing.assert_array_equal(np.asarray(summary.depth_upper[1]), 6.0)
-    # The bounded mass is solved as before.
-    raw = mx.uncertainty.summarise(prediction, (0.5, 0.9))
-    assert np.all(np.asarray(summary.colour_upper[0]) <= np.asarray(raw.colour_upper[1]) + 1e-6)
+    assert np.all(np.asarray(summary.colour_upper) >= 1.0)
+    np.testing.assert_array_equal(np.asarray(summary.depth_upper), 6.0)
+    # The bounded ends are solved as before: the raw quantiles at their levels.
+    for index in range(2):
+        np.testing.assert_allclose(
+            np.asarray(summary.depth_lower[index]),
+            np.asarray(prediction.depth.quantile(float(fitted.depth_lower[index]))),
+            rtol=0,
+            atol=1e-5,
+        )
+        assert np.all(np.asarray(summary.depth_lower[index]) > 2.0)
 
 
 def test_eval_replaces_only_folders_it_wrote(short_run, tmp_path, capsys):

@@ -14,12 +14,16 @@ the PIT values alone.
   CDF of its PIT values, linear between points (as scikit-learn's `IsotonicRegression`
   predicts between its fitted points); here it is kept at `ISOTONIC_KNOTS` quantiles.
   Intervals move to the raw levels `A^-1((1 -+ m) / 2)`.
-- **Split conformal**: the score of a calibration pixel is `s = |2u - 1|`, the smallest
-  central mass of the raw distribution that covers its truth (a score the mixture
-  normalises: a wide mixture needs a small mass for a far truth). With `n` scores, the
-  interval of nominal mass `m` is the raw central interval of mass `q`, the
-  `ceil((n + 1) m)`-th smallest score: a new pixel exchangeable with the calibration pixels is
-  covered with probability at least `m` (and below `m + 1 / (n + 1)` without ties).
+- **Split conformal, equal-tailed**: each end of the interval of nominal mass `m` is an
+  order statistic of the `n` calibration PIT values, the lower the
+  `floor((n + 1)(1 - m) / 2)`-th smallest and the upper the `ceil((n + 1)(1 + m) / 2)`-th: a
+  new pixel exchangeable with the calibration pixels falls below the first with probability
+  at most `(1 - m) / 2` and above the second with at most as much, so it is covered with
+  probability at least `m` (Romano et al. 2019's two-sided conformalised quantile intervals),
+  and below `m + 2 / (n + 1)` without ties. Each end moves on its own, so pixels whose truths
+  lean to one side of the distribution do not widen the other end (a central interval, one
+  score `|2u - 1|` for both ends, over-covers on views that lean less: chosen on validation
+  views, `benchmarks/uncertainty.md`).
 
 Pixels of one view are correlated, and test views are not exchangeable with validation views
 in general: the guarantee is marginal over exchangeable pixels, which held-out views
@@ -71,14 +75,24 @@ def _check_masses(masses: Sequence[float]) -> tuple[float, ...]:
 
 
 def minimum_calibration_pixels(mass: float) -> int:
-    """The fewest calibration pixels that give the conformal interval of `mass` a finite end:
-    `ceil((n + 1) mass) <= n` holds from `n = ceil(mass / (1 - mass))` on."""
-    return max(1, math.ceil(mass / (1.0 - mass) - 1e-12))
+    """The fewest calibration pixels that give the conformal interval of `mass` two bounded
+    ends: both order statistics fall inside `1..n` from `(n + 1)(1 - mass) / 2 >= 1` on, that
+    is `n >= 2 / (1 - mass) - 1`."""
+    return max(1, math.ceil(2.0 / (1.0 - mass) - 1.0 - 1e-9))
 
 
-def conformal_masses(pit, masses: Sequence[float]) -> np.ndarray:
-    """The raw central masses whose intervals hold each nominal mass, per column of `pit`
-    (shape `(masses, columns)`): the `ceil((n + 1) m)`-th smallest score `|2u - 1|`."""
+def _ranks(count: int, mass: float) -> tuple[int, int]:
+    """The 1-based ranks of the equal-tailed interval's ends among `count` calibration values."""
+    return (
+        math.floor((count + 1) * (1.0 - mass) / 2.0 + 1e-9),
+        math.ceil((count + 1) * (1.0 + mass) / 2.0 - 1e-9),
+    )
+
+
+def conformal_levels(pit, masses: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The raw quantile levels `(lower, upper)` of the equal-tailed split-conformal interval of
+    each nominal mass, per column of `pit` (each of shape `(masses, columns)`): the
+    `floor((n + 1)(1 - m) / 2)`-th and `ceil((n + 1)(1 + m) / 2)`-th smallest PIT values."""
     values = _pit_array(pit, "pit")
     masses = _check_masses(masses)
     count = values.shape[0]
@@ -88,9 +102,9 @@ def conformal_masses(pit, masses: Sequence[float]) -> np.ndarray:
             f"{count} calibration pixels are too few for conformal intervals of mass {max(masses):g}: at least "
             f"{needed} are needed; calibrate on more validation views or pixels, or ask for smaller masses"
         )
-    scores = np.sort(np.abs(2.0 * values - 1.0), axis=0)
-    ranks = [math.ceil((count + 1) * mass - 1e-9) for mass in masses]
-    return np.stack([scores[rank - 1] for rank in ranks])
+    ordered = np.sort(values, axis=0)
+    ends = [_ranks(count, mass) for mass in masses]
+    return np.stack([ordered[low - 1] for low, _ in ends]), np.stack([ordered[high - 1] for _, high in ends])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,15 +245,13 @@ class Recalibration:
                 depth_upper = np.array([depth_map.inverse(0.5 * (1 + m))[0] for m in masses])
         else:
             colour_map = depth_map = None
-            spread = conformal_masses(colour, masses)
-            colour_lower, colour_upper = 0.5 * (1.0 - spread), 0.5 * (1.0 + spread)
+            colour_lower, colour_upper = conformal_levels(colour, masses)
             depth_lower, depth_upper = raw.depth_lower, raw.depth_upper
             if depth_count and depth_count >= max(minimum_calibration_pixels(m) for m in masses):
-                depth_spread = conformal_masses(depth, masses)[:, 0]
-                depth_lower, depth_upper = 0.5 * (1.0 - depth_spread), 0.5 * (1.0 + depth_spread)
-        # A level of 0 or 1 is an end without bound (`IntervalLevels`): a conformal mass of 1,
-        # where calibration truths lay outside the distribution's support (PIT values of 0 or
-        # 1), must cover such truths too.
+                depth_lower, depth_upper = (end[:, 0] for end in conformal_levels(depth, masses))
+        # A level of 0 or 1 is an end without bound (`IntervalLevels`): a conformal end whose
+        # order statistic is a calibration truth outside the distribution's support (a PIT
+        # value of 0 or 1) must cover such truths too.
         clip = lambda x: np.clip(x, 0.0, 1.0)  # noqa: E731
         return Recalibration(
             method,
