@@ -3,7 +3,7 @@ out at a time (`../uncertainty.md`, "Central or equal-tailed conformal intervals
 
 For each run: the predictive distribution function at the true colour (PIT values, no quantile
 solve) of `--pixels` pixels drawn from each validation and each test view, kept per view in
-`--cache` (one `.npz` per run, reused when present). Then, per run:
+`--cache` (one `.npz` per run and checkpoint step, reused when present). Then, per run:
 
 - leave one validation view out: both intervals calibrated on the other validation views'
   pixels, scored on the held-out view; the run's figure is the mean over its validation views
@@ -11,9 +11,12 @@ solve) of `--pixels` pixels drawn from each validation and each test view, kept 
 - for the record, both calibrated on every validation view and scored on the test views
   pooled.
 
-The central intervals are the library's (`Recalibration.fit("conformal", ...)`); the
-equal-tailed ones bound each end by an order statistic of the calibration PIT values
-(`equal_tailed_levels` below). Printed: a table per run and the paired verdict of the rule.
+Both are written out here, so that the comparison stays reproducible whichever the library
+ships: the central intervals (`central_levels`: the library's `conformal` until the commit
+after e50ed61) take one score `|2u - 1|` per pixel and the `ceil((n + 1) m)`-th smallest as
+the mass `q` of both ends; the equal-tailed ones (`equal_tailed_levels`, the library's
+`conformal` since) bound each end by an order statistic of the calibration PIT values.
+Printed: a table per run and the paired verdict of the rule.
 
     python benchmarks/experiments/conformal_tails.py --data-dir ../shared/data \\
         --runs runs/qs_ship3/builtin/seed_0 ... --cache runs/conformal_tails \\
@@ -54,8 +57,12 @@ def equal_tailed_levels(pit: np.ndarray, masses) -> tuple[np.ndarray, np.ndarray
 
 
 def central_levels(pit: np.ndarray, masses) -> tuple[np.ndarray, np.ndarray]:
-    fitted = mx.uncertainty.Recalibration.fit("conformal", pit, masses=masses)
-    return fitted.colour_lower, fitted.colour_upper
+    """Per mass and channel, the raw levels `(0.5 (1 - q), 0.5 (1 + q))` of the central
+    split-conformal interval: `q` the `ceil((n + 1) m)`-th smallest score `|2u - 1|`."""
+    scores = np.sort(np.abs(2.0 * np.clip(pit, 0.0, 1.0) - 1.0), axis=0)
+    count = scores.shape[0]
+    spread = np.stack([scores[math.ceil((count + 1) * mass - 1e-9) - 1] for mass in masses])
+    return np.clip(0.5 * (1.0 - spread), 0.0, 1.0), np.clip(0.5 * (1.0 + spread), 0.0, 1.0)
 
 
 LEVELS = {"central": central_levels, "equal-tailed": equal_tailed_levels}
@@ -67,14 +74,17 @@ def coverage(pit: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarra
 
 
 def pit_per_view(run_dir: str, args) -> dict[str, list[np.ndarray]]:
-    cache = Path(args.cache) / (run_dir.strip("/").replace("/", "__") + f"_{args.pixels}.npz")
+    # The run's latest checkpoint names the model: a run trained again in the same folder
+    # (a later step) is not read from an old cache.
+    run = mx.runs.restore_run(run_dir, data_dir=args.data_dir)
+    step = run.step
+    cache = Path(args.cache) / (run_dir.strip("/").replace("/", "__") + f"_step{step}_{args.pixels}.npz")
     if cache.is_file():
         stored = np.load(cache)
         return {
             split: [stored[f"{split}_{i}"] for i in range(int(stored[f"{split}_count"]))]
             for split in ("val", "test")
         }
-    run = mx.runs.restore_run(run_dir, data_dir=args.data_dir)
     dataset = run.dataset
     out = {}
     for split, views in (("val", dataset.split("val")), ("test", dataset.test)):

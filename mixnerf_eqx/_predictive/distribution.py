@@ -716,8 +716,8 @@ DEFAULT_MASSES = (0.5, 0.8, 0.9, 0.95)
 
 
 class IntervalLevels(eqx.Module):
-    """The quantile levels that bound each central interval, per interval mass: the raw
-    `(1 - mass) / 2` and `(1 + mass) / 2`, or levels a recalibration moved
+    """The quantile levels that bound each interval, per interval mass: the raw central
+    interval's `(1 - mass) / 2` and `(1 + mass) / 2`, or levels a recalibration moved
     (`mixnerf_eqx.uncertainty.Recalibration.interval_levels`). Arrays, so a new calibration recompiles
     nothing. A level of exactly 0 or 1 is an end without bound (a recalibration that had to
     cover truths outside the distribution's support): the interval reaches the colour range's

@@ -104,6 +104,8 @@ def conformal_levels(pit, masses: Sequence[float]) -> tuple[np.ndarray, np.ndarr
         )
     ordered = np.sort(values, axis=0)
     ends = [_ranks(count, mass) for mass in masses]
+    # `count >= needed` puts both ranks in 1..count; a rank of 0 would index the largest value.
+    assert all(1 <= low and high <= count for low, high in ends), (count, masses, ends)
     return np.stack([ordered[low - 1] for low, _ in ends]), np.stack([ordered[high - 1] for _, high in ends])
 
 
@@ -268,8 +270,9 @@ class Recalibration:
         )
 
     def unbounded_masses(self) -> dict[str, list[float]]:
-        """The masses whose colour (any channel) or depth interval has an end without bound:
-        the calibration pixels needed the whole range there (`IntervalLevels`)."""
+        """The masses whose colour (any channel) or depth interval has an end without bound
+        (`IntervalLevels`): more of the calibration truths lay beyond that end of the
+        predictive distribution's support (PIT values of 0 or 1) than the end may miss."""
         colour = (self.colour_lower <= 0).any(axis=1) | (self.colour_upper >= 1).any(axis=1)
         depth = (self.depth_lower <= 0) | (self.depth_upper >= 1)
         return {

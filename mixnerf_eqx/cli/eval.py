@@ -188,8 +188,9 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
         if masses:
             listed = ", ".join(f"{mass:g}" for mass in masses)
             print(
-                f"note: the {what} intervals of mass {listed} span the whole range: too many validation truths "
-                "fell outside the model's predictive distribution for a narrower interval to hold that mass"
+                f"note: the {what} intervals of mass {listed} have an end without bound (the range's end): "
+                "more validation truths fell beyond the model's predictive distribution on that side than "
+                "the interval may miss"
             )
     print(f"metrics: {out / 'metrics.json'}")
     if renders:
