@@ -5,8 +5,11 @@ step function and batches (the steps draw from the state's key, so the unchanged
 the run to the digit) under each variant's overrides, and prints every `--every` steps the
 training-batch PSNR and the mean opacity on a fixed strided subset of the training views'
 background and object pixels and of the validation views. The overrides change only the loss
-(`loss.*`; `stop=beta` or `stop=weights` cuts the colour NLL's gradient to the scales or to
-the blending weights): the optimiser and its state are the checkpoint's.
+(`loss.*`; `stop=beta` or `stop=weights` cuts the colour NLL's (NLL_C, eq. 7) gradient to the
+scales or to the blending weights; the other NLLs keep theirs): the optimiser and its state
+are the checkpoint's. The
+probe renders as `failure_probe.py` does, and its PSNR is one squared error pooled over the
+strided pixels.
 
     python benchmarks/experiments/failure_intervene.py --run runs/diag/np1 \
         --checkpoint runs/diag/keep_np1/step_00000400 --steps 160 --data-dir ../shared/data \
@@ -14,6 +17,7 @@ the blending weights): the optimiser and its state are the checkpoint's.
 """
 
 import argparse
+import contextlib
 import dataclasses
 import json
 from pathlib import Path
@@ -21,8 +25,10 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from failure_probe import as_trained
 
 import mixnerf_eqx as mx
+from mixnerf_eqx._train.loss import _REGISTRY  # the registry's slot, swapped in place
 from mixnerf_eqx.config import config_from_dict, config_to_dict
 from mixnerf_eqx.data import rays_for_views
 from mixnerf_eqx.inference import render_rays
@@ -31,12 +37,10 @@ from mixnerf_eqx.training import (
     draw_batch,
     init_train_state,
     make_train_step,
-    register_loss_term,
     training_rays,
-    unregister_loss_term,
 )
 
-_COLOUR_NLL = None  # the library's term, kept on first use
+_LIBRARY_TERM = _REGISTRY["nll_colour"]
 
 
 def _parse_variants(raw: list[list[str]]) -> list[tuple[str, list[str]]]:
@@ -61,20 +65,35 @@ def _colour_nll_stopping(stop: str):
 
 
 def _with_overrides(config, overrides: list[str]):
+    """The config with the `loss.*` overrides, and the colour NLL term this variant uses (the
+    library's own unless `stop=beta` or `stop=weights`)."""
     values = config_to_dict(config)
-    unregister_loss_term("nll_colour")
-    register_loss_term(_COLOUR_NLL)
+    term = _LIBRARY_TERM
     for item in overrides:
         key, value = item.split("=", 1)
         if key == "stop":
-            unregister_loss_term("nll_colour")
-            register_loss_term(dataclasses.replace(_COLOUR_NLL, compute=_colour_nll_stopping(value)))
+            if value not in ("beta", "weights"):
+                raise SystemExit(f"stop={value}: say stop=beta or stop=weights")
+            if config.loss.background_component:
+                raise SystemExit("stop=...: the cut NLL has no background component; this run has one")
+            term = dataclasses.replace(_LIBRARY_TERM, compute=_colour_nll_stopping(value))
             continue
         section, name = key.split(".", 1)
         if section != "loss":
             raise SystemExit(f"{key}: only loss.* settings can change mid-run here")
         values[section][name] = json.loads(value)
-    return config_from_dict(values)
+    return config_from_dict(values), term
+
+
+@contextlib.contextmanager
+def _colour_nll(term):
+    """The objective with `term` in the colour NLL's place (the same position in the sum, so
+    that the library's own term repeats the run exactly), and the library's term after."""
+    _REGISTRY["nll_colour"] = term
+    try:
+        yield
+    finally:
+        _REGISTRY["nll_colour"] = _LIBRARY_TERM
 
 
 def _probe(model, subsets) -> dict[str, float]:
@@ -89,6 +108,30 @@ def _probe(model, subsets) -> dict[str, float]:
     return figures
 
 
+def _continue(state, config, data, subsets, args) -> list[dict]:
+    step = make_train_step(config)
+    draw = jax.jit(draw_batch, static_argnums=2)
+    rows = [{"step": int(state.step), **_probe(as_trained(state.model, int(state.step)), subsets)}]
+    batch_psnr = []
+    for _ in range(args.steps):
+        state, metrics = step(state, draw(data, state, config.train.batch_size))
+        batch_psnr.append(float(metrics.psnr))
+        if int(state.step) % args.every == 0:
+            row = {
+                "step": int(state.step),
+                "batch_psnr": float(np.mean(batch_psnr[-args.every :])),
+                **_probe(as_trained(state.model, int(state.step)), subsets),
+            }
+            rows.append(row)
+            print(
+                f"  {row['step']:>5}  batch {row['batch_psnr']:5.2f}  train acc bg/obj "
+                f"{row['train_acc_bg']:.3f}/{row['train_acc_obj']:.3f}  val acc bg/obj "
+                f"{row['val_acc_bg']:.3f}/{row['val_acc_obj']:.3f}  val psnr {row['val_psnr']:5.2f}",
+                flush=True,
+            )
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", required=True)
@@ -101,10 +144,6 @@ def main() -> None:
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
 
-    global _COLOUR_NLL
-    from mixnerf_eqx._train.loss import _REGISTRY
-
-    _COLOUR_NLL = _REGISTRY["nll_colour"]
     first = Path(args.checkpoint) if args.checkpoint else mx.runs.latest_checkpoint(args.run)
     start = mx.runs.restore_run(args.run, checkpoint=first, data_dir=args.data_dir)
     dataset = start.dataset
@@ -118,32 +157,15 @@ def main() -> None:
             views.images[:, :: args.stride, :: args.stride],
         )
     data = training_rays(dataset, start.config.loss)
-    draw = jax.jit(draw_batch, static_argnums=2)
     results = {}
     for name, overrides in _parse_variants(args.variant):
-        config = _with_overrides(start.config, overrides)
-        step = make_train_step(config)
-        state = start.state
-        rows = [{"step": int(state.step), **_probe(state.model, subsets)}]
+        config, term = _with_overrides(start.config, overrides)
         print(f"[{name}] {' '.join(overrides) or '(the run as it was)'}", flush=True)
-        batch_psnr = []
-        for _ in range(args.steps):
-            state, metrics = step(state, draw(data, state, config.train.batch_size))
-            batch_psnr.append(float(metrics.psnr))
-            if int(state.step) % args.every == 0:
-                row = {
-                    "step": int(state.step),
-                    "batch_psnr": float(np.mean(batch_psnr[-args.every :])),
-                    **_probe(state.model, subsets),
-                }
-                rows.append(row)
-                print(
-                    f"  {row['step']:>5}  batch {row['batch_psnr']:5.2f}  train acc bg/obj "
-                    f"{row['train_acc_bg']:.3f}/{row['train_acc_obj']:.3f}  val acc bg/obj "
-                    f"{row['val_acc_bg']:.3f}/{row['val_acc_obj']:.3f}  val psnr {row['val_psnr']:5.2f}",
-                    flush=True,
-                )
-        results[name] = {"overrides": overrides, "rows": rows}
+        with _colour_nll(term):
+            results[name] = {
+                "overrides": overrides,
+                "rows": _continue(start.state, config, data, subsets, args),
+            }
     if args.out:
         Path(args.out).write_text(
             json.dumps({"run": args.run, "checkpoint": args.checkpoint, "variants": results}, indent=1)

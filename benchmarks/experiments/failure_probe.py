@@ -2,11 +2,12 @@
 
 For every checkpoint folder given (or every one under each `--keep` folder), renders a
 strided subset of the pixels of the training views and of the validation views and prints,
-per split: PSNR on those pixels, the mean opacity on background pixels (where the true
-colour is white) and on the object's, and the mean termination distance on each. A run whose
-geometry fits only its training views shows it here: opacity on the validation views'
-background rises while the training views' stays low (floaters that each training view sees
-against its own background), or the object's termination distance moves.
+per split: PSNR on those pixels (one squared error pooled over them), the mean opacity on
+background pixels (where the true colour is white) and on the object's, and the mean
+termination distance on each. A box filled with floaters shows as opacity near 1 on the
+background. Each checkpoint is rendered with its field as its training step saw it (a grid's
+coarse-to-fine levels), over the rays' whole near-far range (training narrows it during its
+first `train.anneal_steps` steps).
 
     python benchmarks/experiments/failure_probe.py --run runs/diag/np1 --keep runs/diag/keep_np1 \
         --data-dir ../shared/data --stride 8 --out benchmarks/results/NAME.json
@@ -16,6 +17,7 @@ import argparse
 import json
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -29,6 +31,12 @@ def _subset(views, near: float, far: float, stride: int):
     rays = jax.tree_util.tree_map(lambda a: a[:, ::stride, ::stride], rays)
     colour = views.images[:, ::stride, ::stride]
     return rays, colour
+
+
+def as_trained(model, step: int):
+    """`model` with its field as training step `step` saw it (a grid's coarse-to-fine levels):
+    the stored model keeps every level revealed."""
+    return eqx.tree_at(lambda m: m.field, model, model.field.at_step(max(step, 1)))
 
 
 def _figures(model, rays, colour: np.ndarray, white: float) -> dict[str, float]:
@@ -77,7 +85,7 @@ def main() -> None:
         run = mx.runs.restore_run(args.run, checkpoint=folder, dataset=dataset)
         row = {"step": run.step, "checkpoint": str(folder)}
         for name, (rays, colour) in subsets.items():
-            row[name] = _figures(run.model, rays, colour, args.white)
+            row[name] = _figures(as_trained(run.model, run.step), rays, colour, args.white)
         rows.append(row)
         print(
             f"{run.step:>6} | "
