@@ -28,19 +28,35 @@ import numpy as np
 from failure_probe import as_trained
 
 import mixnerf_eqx as mx
-from mixnerf_eqx._train.loss import _REGISTRY  # the registry's slot, swapped in place
 from mixnerf_eqx.config import config_from_dict, config_to_dict
 from mixnerf_eqx.data import rays_for_views
 from mixnerf_eqx.inference import render_rays
 from mixnerf_eqx.training import (
     LossInputs,
+    LossTerm,
+    LossWeights,
     draw_batch,
     init_train_state,
+    loss_term_names,
     make_train_step,
+    register_loss_term,
     training_rays,
+    unregister_loss_term,
 )
 
-_LIBRARY_TERM = _REGISTRY["nll_colour"]
+
+def _library_terms(config) -> list[LossTerm]:
+    """Every registered loss term, in the order the objective adds them up."""
+    names = loss_term_names()
+    every = LossWeights.from_config(config.loss, config.method).replace(**{name: 1.0 for name in names})
+    return list(every.active())
+
+
+def _register(terms: list[LossTerm]) -> None:
+    for name in loss_term_names():
+        unregister_loss_term(name)
+    for term in terms:
+        register_loss_term(term)
 
 
 def _parse_variants(raw: list[list[str]]) -> list[tuple[str, list[str]]]:
@@ -65,10 +81,10 @@ def _colour_nll_stopping(stop: str):
 
 
 def _with_overrides(config, overrides: list[str]):
-    """The config with the `loss.*` overrides, and the colour NLL term this variant uses (the
-    library's own unless `stop=beta` or `stop=weights`)."""
+    """The config with the `loss.*` overrides, and the colour NLL's computation this variant
+    uses instead of the library's (`None`: the library's)."""
     values = config_to_dict(config)
-    term = _LIBRARY_TERM
+    term = None
     for item in overrides:
         key, value = item.split("=", 1)
         if key == "stop":
@@ -76,7 +92,7 @@ def _with_overrides(config, overrides: list[str]):
                 raise SystemExit(f"stop={value}: say stop=beta or stop=weights")
             if config.loss.background_component:
                 raise SystemExit("stop=...: the cut NLL has no background component; this run has one")
-            term = dataclasses.replace(_LIBRARY_TERM, compute=_colour_nll_stopping(value))
+            term = _colour_nll_stopping(value)
             continue
         section, name = key.split(".", 1)
         if section != "loss":
@@ -86,14 +102,17 @@ def _with_overrides(config, overrides: list[str]):
 
 
 @contextlib.contextmanager
-def _colour_nll(term):
-    """The objective with `term` in the colour NLL's place (the same position in the sum, so
-    that the library's own term repeats the run exactly), and the library's term after."""
-    _REGISTRY["nll_colour"] = term
+def _colour_nll(library: list[LossTerm], compute):
+    """The objective with `compute` as the colour NLL, in the same place of the sum (so that
+    the library's own term repeats the run exactly), and the library's objective after."""
+    if compute is None:
+        yield
+        return
+    _register([dataclasses.replace(t, compute=compute) if t.name == "nll_colour" else t for t in library])
     try:
         yield
     finally:
-        _REGISTRY["nll_colour"] = _LIBRARY_TERM
+        _register(library)
 
 
 def _probe(model, subsets) -> dict[str, float]:
@@ -157,11 +176,12 @@ def main() -> None:
             views.images[:, :: args.stride, :: args.stride],
         )
     data = training_rays(dataset, start.config.loss)
+    library = _library_terms(start.config)
     results = {}
     for name, overrides in _parse_variants(args.variant):
         config, term = _with_overrides(start.config, overrides)
         print(f"[{name}] {' '.join(overrides) or '(the run as it was)'}", flush=True)
-        with _colour_nll(term):
+        with _colour_nll(library, term):
             results[name] = {
                 "overrides": overrides,
                 "rows": _continue(start.state, config, data, subsets, args),
