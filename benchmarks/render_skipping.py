@@ -5,11 +5,12 @@
     python benchmarks/render_skipping.py RUN_DIR --max-views 4 --out benchmarks/results/NAME
 
 For each run: the wall time of each command (no compilation cache: what a first evaluation
-costs), the grid's seconds (its refresh and the threshold choice on training pixels, which
-never sees a test view), the chosen threshold, field evaluations per frame made and needed
-against dense, seconds per frame, and the test PSNR, SSIM and LPIPS of both, with the largest
-per-view PSNR change; and every threshold the choice tried, with its bound on the PSNR lost on
-the training pixels and its savings there (why it stopped where it did).
+costs), the grid's seconds (its refresh and the threshold choice on validation pixels, or
+training pixels where a scene has none: never a test view), the chosen threshold, field
+evaluations per frame made and needed against dense, seconds per frame, and the test PSNR,
+SSIM and LPIPS of both, with the largest per-view PSNR change; and every threshold the choice
+tried, with its bound on the PSNR lost on its pixels and its savings there (why it stopped
+where it did).
 
 Output: `--out` (default `benchmarks/results/render_skipping_<backend>`) `.json` and `.md`.
 """
@@ -63,8 +64,10 @@ def summary(run_dir: Path, dense: dict[str, Any], skipping: dict[str, Any]) -> d
         "dense": {k: d["mean"].get(k) for k in ("psnr", "ssim", "lpips")},
         "skipping": {k: s["mean"].get(k) for k in ("psnr", "ssim", "lpips")},
         "largest_view_psnr_change": max(changes, key=abs),
-        # Every threshold the choice rendered on the training pixels: why it stopped where it did.
+        # Every threshold the choice rendered on its pixels: why it stopped where it did.
         "trials": (render.get("threshold_choice") or {}).get("trials", []),
+        # The views those pixels came from (choices recorded before it was said: training).
+        "threshold_views": (render.get("threshold_choice") or {"views": None}).get("views", "train"),
     }
 
 
@@ -86,15 +89,19 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def trials_table(rows: list[dict[str, Any]]) -> str:
-    """The thresholds each choice tried on training pixels, sorted by threshold: the bound on
-    the PSNR it could lose and how many fewer evaluations it made."""
-    lines = ["| run | thresholds tried (bound on the PSNR lost, dB; fewer evaluations) |", "|---|---|"]
+    """The thresholds each choice tried on its pixels (validation or training views), sorted by
+    threshold: the bound on the PSNR it could lose and how many fewer evaluations it made."""
+    lines = [
+        "| run | chosen on | thresholds tried (bound on the PSNR lost, dB; fewer evaluations) |",
+        "|---|---|---|",
+    ]
     for r in rows:
         tried = "; ".join(
             f"{t['threshold']:.3g} ({t['bound_db']:.3f}; {t['reduction']:.2f}x)"
             for t in sorted(r.get("trials", []), key=lambda t: t["threshold"])
         )
-        lines.append(f"| {r['run']} | {tried or 'none (no threshold chosen)'} |")
+        views = {"val": "validation pixels", "train": "training pixels"}.get(r.get("threshold_views"), "-")
+        lines.append(f"| {r['run']} | {views} | {tried or 'none (no threshold chosen)'} |")
     return "\n".join(lines) + "\n"
 
 

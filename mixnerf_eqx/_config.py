@@ -202,7 +202,11 @@ class OccupancyConfig:
     choose_threshold: bool = True  # for a trained model's renders, raise the threshold as far as
     # the threshold rays allow (mixnerf_eqx._inference.threshold)
     threshold_tolerance_db: float = 0.1  # largest bound on the PSNR lost on the threshold rays
-    threshold_rays: int = 4096  # random pixels of the training views the threshold is chosen on
+    threshold_rays: int = 4096  # random pixels the threshold is chosen on
+    threshold_views: Literal["val", "train"] = "val"  # the views those pixels come from ("val":
+    # the validation views, the training views where a scene has none)
+    threshold_measure: Literal["psnr", "bound"] = "psnr"  # on validation pixels: the PSNR lost
+    # there ("psnr") or its worst-case bound ("bound"); training pixels always use the bound
     threshold_doublings: int = 14  # the threshold tried goes up to density_threshold * 2^this
     dilation: int = 1  # occupied cells also mark this many neighbouring cells on every side
     decay: float = 0.95  # each update keeps max(decay * old, new) per cell

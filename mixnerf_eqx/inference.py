@@ -23,6 +23,7 @@ from ._inference.skipping import Skipping as Skipping
 from ._inference.skipping import render_skipping as render_skipping
 from ._inference.threshold import ThresholdChoice as ThresholdChoice
 from ._inference.threshold import choose_threshold as choose_threshold
+from ._inference.threshold import psnr_drop as psnr_drop
 from ._inference.threshold import psnr_drop_bound as psnr_drop_bound
 from ._inference.threshold import threshold_rays as threshold_rays
 from ._inference.video import Video as Video

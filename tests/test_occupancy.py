@@ -23,7 +23,7 @@ from mixnerf_eqx._inference.occupancy import (
     update_occupancy,
 )
 from mixnerf_eqx._inference.skipping import _render_level, _sample_coarse
-from mixnerf_eqx._inference.threshold import psnr_drop_bound
+from mixnerf_eqx._inference.threshold import psnr_drop, psnr_drop_bound
 from mixnerf_eqx.metrics import psnr
 
 
@@ -316,8 +316,10 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     assert a.metrics["render"]["evaluation_reduction"] <= 1.0
     # Skipping may move the held-out PSNR only by what the skipped samples could add.
     assert abs(b.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
-    # The threshold was chosen on training pixels and within its tolerance there.
+    # The threshold was chosen on validation pixels (the tiny scene has them) and within its
+    # tolerance there.
     choice = render["threshold_choice"]
+    assert tiny_scene.val is not None and choice["views"] == "val"
     assert choice["trials"] and choice["tolerance_db"] == 0.1
     assert render["density_threshold"] == choice["threshold"]
     assert choice["within_tolerance"] == (choice["bound_db"] <= 0.1)
@@ -334,6 +336,7 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
         ("occupancy.density_threshold=0", "occupancy.choose_threshold needs"),
         ("occupancy.threshold_rays=0", "occupancy.threshold_rays"),
         ("occupancy.threshold_tolerance_db=-1", "occupancy.threshold_tolerance_db"),
+        ('occupancy.threshold_views="test"', "occupancy.threshold_views"),
     ],
 )
 def test_bad_occupancy_settings_are_refused(override, message):
@@ -368,6 +371,23 @@ def test_psnr_drop_bound_bounds_the_drop_and_is_tight_along_the_error():
     assert psnr_drop_bound(target, dense, target) == np.inf
 
 
+def test_psnr_drop_is_the_measured_loss_and_never_above_its_bound():
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        target = rng.uniform(size=(40, 3))
+        dense = target + rng.normal(scale=rng.uniform(0.01, 0.2), size=target.shape)
+        skipped = dense + rng.normal(scale=rng.uniform(1e-4, 0.1), size=target.shape)
+        drop = psnr_drop(dense, skipped, target)
+        assert drop == pytest.approx(_psnr64(dense, target) - _psnr64(skipped, target), rel=1e-9, abs=1e-12)
+        assert drop <= psnr_drop_bound(dense, skipped, target) + 1e-9
+    # A render closer to the target than the dense one gains: a negative loss.
+    target = rng.uniform(size=(40, 3))
+    dense = target + 0.1
+    assert psnr_drop(dense, target + 0.05, target) == pytest.approx(-20 * np.log10(2.0), rel=1e-9)
+    assert psnr_drop(dense, dense, target) == 0.0
+    assert psnr_drop(target, dense, target) == np.inf and psnr_drop(dense, target, target) == -np.inf
+
+
 class FoggySphereField(SphereField):
     """The sphere inside a uniform fog of density `fog` (in the whole box)."""
 
@@ -378,7 +398,7 @@ class FoggySphereField(SphereField):
         return jnp.where(inside_box, jnp.maximum(super().density(mean, cov), self.fog), 0.0)
 
 
-def _choose_for_foggy_sphere(tolerance_db):
+def _choose_for_foggy_sphere(tolerance_db, measure="bound"):
     foggy = FoggySphereField(centre=jnp.array([0.1, -0.05, 0.0]), inside=jnp.asarray(20.0), radius=0.6)
     model = _sphere_model(foggy, samples=48)
     rays = _camera_rays(size=24)
@@ -388,7 +408,7 @@ def _choose_for_foggy_sphere(tolerance_db):
     grid = refresh_occupancy(grid, foggy, key=jax.random.key(0))
     skipping = Skipping(grid, 1e-4, 4)
     chosen, choice = mx.inference.choose_threshold(
-        model, grid, skipping, rays, target, tolerance_db=tolerance_db, doublings=16, chunk=576
+        model, grid, skipping, rays, target, tolerance_db=tolerance_db, doublings=16, chunk=576, measure=measure
     )
     dense = render_rays(model, rays, 576).rgb
 
@@ -411,6 +431,20 @@ def test_the_threshold_choice_keeps_the_fog_for_a_tight_tolerance_and_picks_the_
     assert len(choice.trials) <= 6  # bisection over 17 candidates
 
 
+def test_the_measured_loss_skips_the_fog_that_the_bound_keeps_but_not_the_sphere():
+    # The truth has no fog, so removing it brings the image closer: no loss measured, while
+    # the bound (above) counts the change as a possible loss and keeps the fog.
+    chosen, choice, bound = _choose_for_foggy_sphere(tolerance_db=0.5, measure="psnr")
+    assert choice.measure == "psnr" and choice.within_tolerance
+    assert 0.02 <= choice.threshold < 20.0 and choice.psnr_drop_db < 0  # above the fog, below the sphere
+    assert choice.psnr_drop_db == min(t.psnr_drop_db for t in choice.trials if t.threshold == choice.threshold)
+    assert choice.reduction > 2.0
+    # Every candidate refused lost more than the tolerance; the next one up from the choice did.
+    assert all(t.psnr_drop_db > 0.5 for t in choice.trials if t.threshold > choice.threshold)
+    with pytest.raises(ValueError, match="measure"):
+        _choose_for_foggy_sphere(tolerance_db=0.5, measure="mean")
+
+
 def test_the_threshold_choice_skips_the_fog_but_not_the_sphere_for_a_loose_tolerance():
     chosen, choice, bound = _choose_for_foggy_sphere(tolerance_db=7.0)
     assert choice.within_tolerance
@@ -419,9 +453,10 @@ def test_the_threshold_choice_skips_the_fog_but_not_the_sphere_for_a_loose_toler
     assert choice.reduction > 2.0
 
 
-def test_threshold_rays_are_distinct_training_pixels(tiny_scene):
-    rays, colours = mx.inference.threshold_rays(tiny_scene, 300, key=jax.random.key(3))
-    views = tiny_scene.train
+@pytest.mark.parametrize("split", ["train", "val"])
+def test_threshold_rays_are_distinct_pixels_of_the_split_asked_for(tiny_scene, split):
+    rays, colours = mx.inference.threshold_rays(tiny_scene, 300, key=jax.random.key(3), split=split)
+    views = tiny_scene.split(split)
     assert rays.batch_shape == (300,) and colours.shape == (300, 3)
     all_rays = mx.data.rays_for_views(views, tiny_scene.near, tiny_scene.far).reshape(-1)
     table = np.concatenate([np.asarray(all_rays.origins), np.asarray(all_rays.directions)], axis=-1)
@@ -430,4 +465,50 @@ def test_threshold_rays_are_distinct_training_pixels(tiny_scene):
     assert len(set(index)) == 300
     np.testing.assert_array_equal(colours, np.asarray(views.images, np.float32).reshape(-1, 3)[index])
     with pytest.raises(ValueError, match="num_rays"):
-        mx.inference.threshold_rays(tiny_scene, 0, key=jax.random.key(3))
+        mx.inference.threshold_rays(tiny_scene, 0, key=jax.random.key(3), split=split)
+
+
+def test_threshold_rays_never_come_from_the_test_views_and_need_validation_views_to_use_them(tiny_scene):
+    with pytest.raises(ValueError, match='"train" or "val"'):
+        mx.inference.threshold_rays(tiny_scene, 10, key=jax.random.key(0), split="test")
+    no_val = dataclasses.replace(tiny_scene, val=None)
+    with pytest.raises(ValueError, match="no validation views"):
+        mx.inference.threshold_rays(no_val, 10, key=jax.random.key(0), split="val")
+
+
+@pytest.mark.parametrize(
+    "has_val, asked, asked_measure, used, used_measure",
+    [
+        (True, "val", "psnr", "val", "psnr"),
+        (True, "val", "bound", "val", "bound"),
+        # Training pixels, fitted closely, are held to the bound whatever is asked.
+        (False, "val", "psnr", "train", "bound"),
+        (True, "train", "psnr", "train", "bound"),
+    ],
+)
+def test_the_threshold_is_chosen_on_the_views_asked_for_and_says_which(
+    short_run, tiny_scene, has_val, asked, asked_measure, used, used_measure
+):
+    _, model = short_run
+    dataset = tiny_scene if has_val else dataclasses.replace(tiny_scene, val=None)
+    occupancy = dataclasses.replace(
+        mx.load_config(None, []).occupancy,
+        enabled=True,
+        resolution=16,
+        threshold_rays=256,
+        threshold_views=asked,
+        threshold_measure=asked_measure,
+    )
+    grid, choice = mx.runs.grid_for_rendering(occupancy, dataset, model, key=jax.random.key(1))
+    assert choice.views == used and choice.measure == used_measure
+    assert float(grid.threshold) == choice.threshold
+    # The same choice as `choose_threshold` makes on those views' pixels, drawn with the same key.
+    _, threshold_key = jax.random.split(jax.random.key(1))
+    rays, colours = mx.inference.threshold_rays(dataset, 256, key=threshold_key, split=used)
+    skipping = mx.runs.make_skipping(occupancy, grid)
+    first = grid.with_threshold(occupancy.density_threshold)
+    _, direct = mx.inference.choose_threshold(
+        model, first, skipping, rays, colours, chunk=256, measure=used_measure
+    )
+    assert direct.threshold == choice.threshold
+    assert direct.bound_db == pytest.approx(choice.bound_db, rel=1e-6)

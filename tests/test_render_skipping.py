@@ -43,7 +43,13 @@ def test_the_trials_are_kept_and_listed_by_threshold():
         ThresholdTrial(0.02, 0.016, 1.0),
     )
     choice = ThresholdChoice(
-        threshold=0.02, bound_db=0.016, reduction=1.0, within_tolerance=True, tolerance_db=0.1, trials=tried
+        threshold=0.02,
+        bound_db=0.016,
+        reduction=1.0,
+        within_tolerance=True,
+        tolerance_db=0.1,
+        trials=tried,
+        views="val",
     )
     dense = {"wall_s": 10.0, "metrics": _metrics([20.0, 19.0], {"seconds_per_frame": 1.0})}
     skipping = {"wall_s": 12.0, "metrics": _metrics([20.0, 18.9], _render(dataclasses.asdict(choice)))}
@@ -51,7 +57,8 @@ def test_the_trials_are_kept_and_listed_by_threshold():
     assert [t["threshold"] for t in row["trials"]] == [1.28, 0.08, 0.02]
     assert abs(row["largest_view_psnr_change"] + 0.1) < 1e-9
     line = render_skipping.trials_table([row]).splitlines()[-1]
-    assert line == "| runs/x | 0.02 (0.016; 1.00x); 0.08 (0.155; 1.00x); 1.28 (1.820; 1.16x) |"
+    tried_cell = "0.02 (0.016; 1.00x); 0.08 (0.155; 1.00x); 1.28 (1.820; 1.16x)"
+    assert line == f"| runs/x | validation pixels | {tried_cell} |"
 
 
 def test_a_run_without_a_chosen_threshold_says_so():
@@ -59,4 +66,5 @@ def test_a_run_without_a_chosen_threshold_says_so():
     skipping = {"wall_s": 12.0, "metrics": _metrics([20.0], _render(None))}
     row = render_skipping.summary(Path("runs/y"), dense, skipping)
     assert row["trials"] == []
-    assert render_skipping.trials_table([row]).splitlines()[-1] == "| runs/y | none (no threshold chosen) |"
+    line = render_skipping.trials_table([row]).splitlines()[-1]
+    assert line == "| runs/y | - | none (no threshold chosen) |"

@@ -48,7 +48,9 @@ def grid_for_rendering(
     grid: OccupancyGrid | None = None,
 ) -> tuple[OccupancyGrid, ThresholdChoice | None]:
     """`model`'s density evaluated in every cell of `grid` (default: a new grid for `dataset`),
-    with its threshold chosen on training pixels when `occupancy.choose_threshold` is on.
+    with its threshold chosen when `occupancy.choose_threshold` is on, on pixels of the views
+    `occupancy.threshold_views` names (the training views where `"val"` is asked for and the
+    scene has no validation views; the choice records which).
 
     **Returns:**
 
@@ -59,8 +61,9 @@ def grid_for_rendering(
     grid = _refresh_occupancy(grid, model.field, key=refresh_key)
     if not occupancy.choose_threshold:
         return grid, None
-    rays, colours = threshold_rays(dataset, occupancy.threshold_rays, key=threshold_key)
-    return choose_threshold(
+    views = "val" if occupancy.threshold_views == "val" and dataset.val is not None else "train"
+    rays, colours = threshold_rays(dataset, occupancy.threshold_rays, key=threshold_key, split=views)
+    grid, choice = choose_threshold(
         model,
         grid,
         make_skipping(occupancy, grid),
@@ -69,7 +72,11 @@ def grid_for_rendering(
         tolerance_db=occupancy.threshold_tolerance_db,
         doublings=occupancy.threshold_doublings,
         chunk=min(occupancy.chunk, occupancy.threshold_rays),
+        # The loss measured is for held-out pixels; on training pixels, fitted far more
+        # closely than any other view, only the bound says what other views may lose.
+        measure=occupancy.threshold_measure if views == "val" else "bound",
     )
+    return grid, dataclasses.replace(choice, views=views)
 
 
 def render_summary(

@@ -150,7 +150,11 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
     )
     render = result["render"]
     if grid is not None:
-        how = "chosen on training pixels" if choice is not None else "from the config"
+        how = "from the config"
+        if choice is not None:
+            pixels = "validation" if choice.views == "val" else "training"
+            measure = "the PSNR lost there" if choice.measure == "psnr" else "a bound on the PSNR lost"
+            how = f"chosen on {pixels} pixels by {measure}"
         if choice is not None and not choice.within_tolerance:
             how += f", no threshold kept the bound within {choice.tolerance_db} dB"
         print(
