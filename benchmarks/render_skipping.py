@@ -17,6 +17,7 @@ Output: `--out` (default `benchmarks/results/render_skipping_<backend>`) `.json`
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -92,14 +93,18 @@ def trials_table(rows: list[dict[str, Any]]) -> str:
     """The thresholds each choice tried on its pixels (validation or training views), sorted by
     threshold: the bound on the PSNR it could lose and how many fewer evaluations it made."""
     lines = [
-        "| run | chosen on | thresholds tried (bound on the PSNR lost, dB; fewer evaluations) |",
+        "| run | chosen on | thresholds tried (bound on the PSNR lost / PSNR lost, dB; fewer evaluations) |",
         "|---|---|---|",
     ]
+
+    def cell(t: dict[str, Any]) -> str:
+        # Choices recorded before the loss itself was measured have only the bound.
+        lost = t.get("psnr_drop_db")
+        measured = "" if lost is None or math.isnan(lost) else f" / {lost:+.3f}"
+        return f"{t['threshold']:.3g} ({t['bound_db']:.3f}{measured}; {t['reduction']:.2f}x)"
+
     for r in rows:
-        tried = "; ".join(
-            f"{t['threshold']:.3g} ({t['bound_db']:.3f}; {t['reduction']:.2f}x)"
-            for t in sorted(r.get("trials", []), key=lambda t: t["threshold"])
-        )
+        tried = "; ".join(cell(t) for t in sorted(r.get("trials", []), key=lambda t: t["threshold"]))
         views = {"val": "validation pixels", "train": "training pixels"}.get(r.get("threshold_views"), "-")
         lines.append(f"| {r['run']} | {views} | {tried or 'none (no threshold chosen)'} |")
     return "\n".join(lines) + "\n"
@@ -107,11 +112,28 @@ def trials_table(rows: list[dict[str, Any]]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", nargs="+", type=Path, help="trained run folders")
+    parser.add_argument("runs", nargs="*", type=Path, help="trained run folders")
     parser.add_argument("--max-views", type=int, default=0, help="test views, evenly spaced (0: all)")
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument(
+        "--tables-from",
+        type=Path,
+        default=None,
+        help="write the tables of this script's earlier .json again (no evaluation; the runs are ignored)",
+    )
     args = parser.parse_args(argv)
+    if args.tables_from is None and not args.runs:
+        parser.error("name at least one run folder (or --tables-from an earlier result)")
+    if args.tables_from is not None:
+        earlier = json.loads(args.tables_from.read_text())
+        rows = earlier["rows"]
+        text = table(rows) + "\n" + trials_table(rows)
+        print(text, end="")
+        if args.out:
+            made = f"{earlier.get('command', '?')} (tables written again by: {harness.command_line()})"
+            args.out.with_suffix(".md").write_text(f"<!-- made by: {made} -->\n\n" + text)
+        return 0
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
         for index, run_dir in enumerate(args.runs):

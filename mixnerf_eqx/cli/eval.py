@@ -156,7 +156,7 @@ def _print_summary(result: dict, grid, choice, out: Path, renders: bool) -> None
             measure = "the PSNR lost there" if choice.measure == "psnr" else "a bound on the PSNR lost"
             how = f"chosen on {pixels} pixels by {measure}"
         if choice is not None and not choice.within_tolerance:
-            how += f", no threshold kept the bound within {choice.tolerance_db} dB"
+            how += f", no threshold kept the loss within {choice.tolerance_db} dB"
         print(
             f"skipping: density threshold {float(grid.threshold):.4g} ({how}), "
             f"{render['occupied_fraction']:.1%} of the grid occupied, "
