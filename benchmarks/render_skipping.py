@@ -9,8 +9,8 @@ costs), the grid's seconds (its refresh and the threshold choice on validation p
 training pixels where a scene has none: never a test view), the chosen threshold, field
 evaluations per frame made and needed against dense, seconds per frame, and the test PSNR,
 SSIM and LPIPS of both, with the largest per-view PSNR change; and every threshold the choice
-tried, with its bound on the PSNR lost on its pixels and its savings there (why it stopped
-where it did).
+tried, with its bound on the PSNR lost on its pixels, the PSNR it did lose there (recorded
+since the choice could be made by it) and its savings there (why it stopped where it did).
 
 Output: `--out` (default `benchmarks/results/render_skipping_<backend>`) `.json` and `.md`.
 """
@@ -105,7 +105,9 @@ def trials_table(rows: list[dict[str, Any]]) -> str:
 
     for r in rows:
         tried = "; ".join(cell(t) for t in sorted(r.get("trials", []), key=lambda t: t["threshold"]))
-        views = {"val": "validation pixels", "train": "training pixels"}.get(r.get("threshold_views"), "-")
+        # Rows written before the views were recorded were chosen on training pixels.
+        recorded = r.get("threshold_views", "train" if r.get("trials") else None)
+        views = {"val": "validation pixels", "train": "training pixels"}.get(recorded, "-")
         lines.append(f"| {r['run']} | {views} | {tried or 'none (no threshold chosen)'} |")
     return "\n".join(lines) + "\n"
 

@@ -14,9 +14,11 @@ printed beside it.
 The run is read with `mx.runs.restore_run`, and the occupancy grid rebuilt from the checkpoint by
 `mx.runs.grid_for_rendering` (every cell evaluated once); its cost is reported as `grid_seconds`.
 The `--thresholds` rows use each threshold as given; the `--calibrate` rows (one per
-tolerance) let `mixnerf_eqx.inference.choose_threshold` choose it on `--calibrate-rays` training
-pixels, starting from the smallest of `--thresholds`, as `fit` and `python -m mixnerf_eqx.eval`
-do with `occupancy.choose_threshold` on; their `grid_seconds` include the calibration. Each setting
+tolerance) let `mixnerf_eqx.inference.choose_threshold` choose it on `--calibrate-rays` pixels
+of the views and by the measure the run's config names (`occupancy.threshold_views`,
+`occupancy.threshold_measure`: validation pixels and the PSNR lost there by default, training
+pixels and the bound where a scene has no validation views), starting from the smallest of
+`--thresholds`, as `fit` and `python -m mixnerf_eqx.eval` do with `occupancy.choose_threshold` on; their `grid_seconds` include the calibration. Each setting
 renders the selected views twice and times the second pass, so that compiling the buffer sizes
 a setting needs is not timed.
 
@@ -56,9 +58,9 @@ def parse_args(argv=None):
         nargs="*",
         default=[0.1],
         metavar="TOLERANCE_DB",
-        help="also calibrate the threshold to these PSNR-drop bounds (none: skip)",
+        help="also calibrate the threshold to these tolerances on the PSNR lost (none: skip)",
     )
-    parser.add_argument("--calibrate-rays", type=int, default=4096, help="training pixels for calibrating")
+    parser.add_argument("--calibrate-rays", type=int, default=4096, help="pixels for calibrating (of the views the run's config names)")
     parser.add_argument(
         "--out", type=Path, default=None, help="result JSON (default: benchmarks/results/skipping_*)"
     )

@@ -201,7 +201,7 @@ class OccupancyConfig:
     # choose_threshold: the smallest threshold tried)
     choose_threshold: bool = True  # for a trained model's renders, raise the threshold as far as
     # the threshold rays allow (mixnerf_eqx._inference.threshold)
-    threshold_tolerance_db: float = 0.1  # largest bound on the PSNR lost on the threshold rays
+    threshold_tolerance_db: float = 0.1  # largest PSNR lost on the threshold rays (as threshold_measure counts it)
     threshold_rays: int = 4096  # random pixels the threshold is chosen on
     threshold_views: Literal["val", "train"] = "val"  # the views those pixels come from ("val":
     # the validation views, the training views where a scene has none)

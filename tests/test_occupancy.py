@@ -314,7 +314,8 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     assert render["dense_evaluations_per_frame"] == pixels * 32
     assert 0 < render["needed_evaluations_per_frame"] <= render["dense_evaluations_per_frame"]
     assert a.metrics["render"]["evaluation_reduction"] <= 1.0
-    # Skipping may move the held-out PSNR only by what the skipped samples could add.
+    # The threshold keeps the PSNR lost on validation pixels within 0.1 dB; on the test views
+    # that is an estimate, which this deterministic run holds to.
     assert abs(b.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
     # The threshold was chosen on validation pixels (the tiny scene has them) and within its
     # tolerance there.
@@ -322,7 +323,11 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     assert tiny_scene.val is not None and choice["views"] == "val"
     assert choice["trials"] and choice["tolerance_db"] == 0.1
     assert render["density_threshold"] == choice["threshold"]
-    assert choice["within_tolerance"] == (choice["bound_db"] <= 0.1)
+    # By the PSNR lost there (the default measure on validation pixels), not by the bound.
+    assert choice["measure"] == "psnr"
+    assert choice["within_tolerance"] == (choice["psnr_drop_db"] <= 0.1)
+    kept = [t for t in choice["trials"] if t["threshold"] == choice["threshold"]]
+    assert choice["threshold"] == 0.0 or kept[0]["psnr_drop_db"] == choice["psnr_drop_db"]
 
 
 @pytest.mark.parametrize(
@@ -437,7 +442,8 @@ def test_the_measured_loss_skips_the_fog_that_the_bound_keeps_but_not_the_sphere
     chosen, choice, bound = _choose_for_foggy_sphere(tolerance_db=0.5, measure="psnr")
     assert choice.measure == "psnr" and choice.within_tolerance
     assert 0.02 <= choice.threshold < 20.0 and choice.psnr_drop_db < 0  # above the fog, below the sphere
-    assert choice.psnr_drop_db == min(t.psnr_drop_db for t in choice.trials if t.threshold == choice.threshold)
+    # The bound on the same render is far above the tolerance: the fog's removal is a change.
+    assert choice.bound_db > 0.5
     assert choice.reduction > 2.0
     # Every candidate refused lost more than the tolerance; the next one up from the choice did.
     assert all(t.psnr_drop_db > 0.5 for t in choice.trials if t.threshold > choice.threshold)
@@ -512,3 +518,5 @@ def test_the_threshold_is_chosen_on_the_views_asked_for_and_says_which(
     )
     assert direct.threshold == choice.threshold
     assert direct.bound_db == pytest.approx(choice.bound_db, rel=1e-6)
+    assert direct.psnr_drop_db == pytest.approx(choice.psnr_drop_db, rel=1e-6, abs=1e-9)
+    assert [t.threshold for t in direct.trials] == [t.threshold for t in choice.trials]

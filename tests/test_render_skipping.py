@@ -1,6 +1,7 @@
 """`benchmarks/render_skipping.py`: its record keeps every threshold the choice tried."""
 
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -68,3 +69,33 @@ def test_a_run_without_a_chosen_threshold_says_so():
     assert row["trials"] == []
     line = render_skipping.trials_table([row]).splitlines()[-1]
     assert line == "| runs/y | - | none (no threshold chosen) |"
+
+
+def test_the_trials_show_the_measured_loss_where_it_was_recorded_and_tables_can_be_written_again(tmp_path):
+    tried = (ThresholdTrial(1.28, 1.82, 4.2, 0.25), ThresholdTrial(0.08, 0.9, 3.0, -0.031))
+    choice = ThresholdChoice(
+        threshold=0.08,
+        bound_db=0.9,
+        reduction=3.0,
+        within_tolerance=True,
+        tolerance_db=0.1,
+        trials=tried,
+        views="val",
+        measure="psnr",
+        psnr_drop_db=-0.031,
+    )
+    dense = {"wall_s": 10.0, "metrics": _metrics([20.0], {"seconds_per_frame": 1.0})}
+    skipping = {"wall_s": 12.0, "metrics": _metrics([20.03], _render(dataclasses.asdict(choice)))}
+    row = render_skipping.summary(Path("runs/z"), dense, skipping)
+    line = render_skipping.trials_table([row]).splitlines()[-1]
+    assert line == "| runs/z | validation pixels | 0.08 (0.900 / -0.031; 3.00x); 1.28 (1.820 / +0.250; 4.20x) |"
+    # A row written before the views were recorded reads as training pixels, as it was.
+    old = {k: v for k, v in row.items() if k != "threshold_views"}
+    assert "| training pixels |" in render_skipping.trials_table([old]).splitlines()[-1]
+    # --tables-from writes the tables of an earlier .json again, keeping its command.
+    earlier = tmp_path / "earlier.json"
+    earlier.write_text(json.dumps({"command": "python benchmarks/render_skipping.py runs/z", "rows": [row]}))
+    assert render_skipping.main(["--tables-from", str(earlier), "--out", str(tmp_path / "again")]) == 0
+    text = (tmp_path / "again.md").read_text()
+    assert text.startswith("<!-- made by: python benchmarks/render_skipping.py runs/z (tables written again")
+    assert line in text

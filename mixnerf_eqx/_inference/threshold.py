@@ -169,8 +169,11 @@ def choose_threshold(
     - `measure`: `"bound"` (the worst case) or `"psnr"` (the loss measured on the rays;
       for held-out rays), as the module docstring says.
 
-    The candidates are searched by bisection, which assumes that a larger threshold never
-    changes the image less (more cells are skipped); `log2(doublings + 1) + 1` renders. If
+    The candidates are searched by bisection, which assumes that the measure never falls as
+    the threshold grows (more cells are skipped); `log2(doublings + 1) + 1` renders. The
+    bound nearly always grows; the measured loss need not (a haze removed can gain), so with
+    `"psnr"` the choice is the largest candidate accepted on the bisection's path, not
+    necessarily the largest acceptable one. If
     not even the smallest candidate is within tolerance, the threshold 0 is rendered and
     returned.
 
