@@ -36,6 +36,28 @@ def _render(choice):
     }
 
 
+def _choice(tried, kept, **recorded):
+    """The choice that kept trial `kept` of `tried`, chosen on validation pixels."""
+    return ThresholdChoice(
+        threshold=kept.threshold,
+        bound_db=kept.bound_db,
+        reduction=kept.reduction,
+        within_tolerance=True,
+        tolerance_db=0.1,
+        trials=tried,
+        views="val",
+        **recorded,
+    )
+
+
+def _row(run, dense_psnrs, skipping_psnrs, choice):
+    """`summary` of a dense and a skipping eval, the choice as `eval` writes it (`asdict`)."""
+    dense = {"wall_s": 10.0, "metrics": _metrics(dense_psnrs, {"seconds_per_frame": 1.0})}
+    render = _render(None if choice is None else dataclasses.asdict(choice))
+    skipping = {"wall_s": 12.0, "metrics": _metrics(skipping_psnrs, render)}
+    return render_skipping.summary(Path(run), dense, skipping)
+
+
 def test_the_trials_are_kept_and_listed_by_threshold():
     # The choice as `eval` writes it into metrics.json (`dataclasses.asdict`), trials in the order tried.
     tried = (
@@ -43,18 +65,7 @@ def test_the_trials_are_kept_and_listed_by_threshold():
         ThresholdTrial(0.08, 0.155, 1.0),
         ThresholdTrial(0.02, 0.016, 1.0),
     )
-    choice = ThresholdChoice(
-        threshold=0.02,
-        bound_db=0.016,
-        reduction=1.0,
-        within_tolerance=True,
-        tolerance_db=0.1,
-        trials=tried,
-        views="val",
-    )
-    dense = {"wall_s": 10.0, "metrics": _metrics([20.0, 19.0], {"seconds_per_frame": 1.0})}
-    skipping = {"wall_s": 12.0, "metrics": _metrics([20.0, 18.9], _render(dataclasses.asdict(choice)))}
-    row = render_skipping.summary(Path("runs/x"), dense, skipping)
+    row = _row("runs/x", [20.0, 19.0], [20.0, 18.9], _choice(tried, tried[2]))
     assert [t["threshold"] for t in row["trials"]] == [1.28, 0.08, 0.02]
     assert abs(row["largest_view_psnr_change"] + 0.1) < 1e-9
     line = render_skipping.trials_table([row]).splitlines()[-1]
@@ -63,9 +74,7 @@ def test_the_trials_are_kept_and_listed_by_threshold():
 
 
 def test_a_run_without_a_chosen_threshold_says_so():
-    dense = {"wall_s": 10.0, "metrics": _metrics([20.0], {"seconds_per_frame": 1.0})}
-    skipping = {"wall_s": 12.0, "metrics": _metrics([20.0], _render(None))}
-    row = render_skipping.summary(Path("runs/y"), dense, skipping)
+    row = _row("runs/y", [20.0], [20.0], None)
     assert row["trials"] == []
     line = render_skipping.trials_table([row]).splitlines()[-1]
     assert line == "| runs/y | - | none (no threshold chosen) |"
@@ -73,22 +82,10 @@ def test_a_run_without_a_chosen_threshold_says_so():
 
 def test_the_trials_show_the_measured_loss_where_it_was_recorded_and_tables_can_be_written_again(tmp_path):
     tried = (ThresholdTrial(1.28, 1.82, 4.2, 0.25), ThresholdTrial(0.08, 0.9, 3.0, -0.031))
-    choice = ThresholdChoice(
-        threshold=0.08,
-        bound_db=0.9,
-        reduction=3.0,
-        within_tolerance=True,
-        tolerance_db=0.1,
-        trials=tried,
-        views="val",
-        measure="psnr",
-        psnr_drop_db=-0.031,
-    )
-    dense = {"wall_s": 10.0, "metrics": _metrics([20.0], {"seconds_per_frame": 1.0})}
-    skipping = {"wall_s": 12.0, "metrics": _metrics([20.03], _render(dataclasses.asdict(choice)))}
-    row = render_skipping.summary(Path("runs/z"), dense, skipping)
+    row = _row("runs/z", [20.0], [20.03], _choice(tried, tried[1], measure="psnr", psnr_drop_db=-0.031))
     line = render_skipping.trials_table([row]).splitlines()[-1]
-    assert line == "| runs/z | validation pixels | 0.08 (0.900 / -0.031; 3.00x); 1.28 (1.820 / +0.250; 4.20x) |"
+    tried_cell = "0.08 (0.900 / -0.031; 3.00x); 1.28 (1.820 / +0.250; 4.20x)"
+    assert line == f"| runs/z | validation pixels | {tried_cell} |"
     # A row written before the views were recorded reads as training pixels, as it was.
     old = {k: v for k, v in row.items() if k != "threshold_views"}
     assert "| training pixels |" in render_skipping.trials_table([old]).splitlines()[-1]
