@@ -375,6 +375,60 @@ def test_predictive_pass_of_a_model_compiles_once(tiny_config, tiny_scene, monke
         mx.predictive(baseline, rays)
 
 
+def test_background_component_joins_the_predictive_mixture(tiny_config, tiny_scene):
+    """A model trained with a background component (`loss.background_component`) predicts the
+    mixture its colour NLL scored: the samples' unnormalised weights and the transmittance on
+    the background's Laplace density. Reference: float64 numpy from the render's own weights,
+    densities and edges; and the loss's own NLL of the same pixels."""
+    from mixnerf_eqx._nn.model import build_model
+
+    loss = dataclasses.replace(tiny_config.loss, background_component=True, background_scale=0.02)
+    config = dataclasses.replace(tiny_config, loss=loss)
+    model = build_model(config, key=jax.random.key(3), white_background=True)
+    assert model.mixture.background == (1.0, 1.0, 1.0)
+    view = tiny_scene.test.select([0])
+    rays = rays_for_views(view, tiny_scene.near, tiny_scene.far).reshape(-1)
+    targets = np.asarray(view.images, np.float32).reshape(-1, 3)
+    prediction = eqx.filter_jit(lambda m, r: mx.predictive(m, r))(model, rays)
+    coarse = eqx.filter_jit(lambda m, r: m(r))(model, rays).coarse
+
+    weights = np.asarray(coarse.weights, np.float64)
+    density = np.asarray(coarse.field.density, np.float64)
+    edges = np.asarray(coarse.t_edges, np.float64)
+    norm = np.linalg.norm(np.asarray(rays.directions, np.float64), axis=-1)
+    light = np.exp(-np.sum(density * np.maximum(np.diff(edges, axis=-1), 0.0) * norm[:, None], axis=-1))
+    # An untrained model leaves much of the light to the background: the component matters here.
+    assert np.median(light) > 0.05 and np.min(light) < 0.95
+    masses = np.concatenate([weights, light[:, None]], axis=-1)
+    coefficients = masses / masses.sum(-1, keepdims=True)
+    extra = np.ones((len(light), 1, 3))
+    location = np.concatenate([np.asarray(coarse.field.rgb, np.float64), extra], axis=1)
+    scale = np.concatenate([np.asarray(coarse.field.beta, np.float64), 0.02 * extra], axis=1)
+
+    colour = prediction.colour
+    assert colour.coefficients.shape == (len(light), weights.shape[-1] + 1)
+    np.testing.assert_allclose(colour.coefficients, coefficients, rtol=2e-4, atol=1e-6)
+    reference = np_log_density(targets, coefficients, location, scale)
+    np.testing.assert_allclose(colour.log_prob(jnp.asarray(targets)), reference, rtol=1e-4, atol=1e-3)
+    reference_cdf = np.stack([np_channel_cdf(targets[:, c], coefficients, location[..., c], scale[..., c])
+                              for c in range(3)], axis=-1)
+    np.testing.assert_allclose(colour.cdf(jnp.asarray(targets)), reference_cdf, atol=2e-5)
+    # The mixture's mean is the coarse render over the white background.
+    np.testing.assert_allclose(colour.mean(), np.asarray(coarse.rgb), atol=2e-5)
+    # The training objective scores the same pixels with the same density.
+    from mixnerf_eqx._nn.compositing import log_transmittance
+
+    log_t = jax.vmap(log_transmittance)(coarse.field.density, coarse.t_edges, jnp.asarray(norm, jnp.float32))
+    nll = jax.vmap(model.mixture.colour_nll)(coarse.weights, coarse.field.rgb, coarse.field.beta,
+                                             jnp.asarray(targets), log_t)
+    np.testing.assert_allclose(-np.asarray(colour.log_prob(jnp.asarray(targets))), nll, rtol=1e-4, atol=1e-3)
+
+    # Without the option, the coefficients stay the weights normalised over the samples.
+    plain = build_model(tiny_config, key=jax.random.key(3), white_background=True)
+    assert plain.mixture.background is None
+    assert mx.predictive(plain, rays).colour.coefficients.shape == weights.shape
+
+
 def test_eval_writes_uncertainty_maps_and_calibration(tiny_config, tiny_scene, tmp_path):
     import json
 

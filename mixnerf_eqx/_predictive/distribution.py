@@ -27,7 +27,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from .._custom_types import RGB, Edges, PerSample, PerSampleRGB, ScalarLike
-from .._nn.compositing import expected_depth, termination_cdf, termination_quantile
+from .._nn.compositing import expected_depth, log_transmittance, termination_cdf, termination_quantile
 from .._nn.mixture import LaplaceMixture
 from .._nn.mixture.laplace import laplace_log_density
 from .._nn.model import MixNeRF
@@ -608,18 +608,62 @@ def _check_bounds(rays: RayBundle) -> RayBundle:
     return rays
 
 
-def colour_mixture(level: LevelOutputs, temperature: ScalarLike = 1.0) -> ColourMixture:
+class Background(eqx.Module):
+    """The background component of a colour mixture (`LaplaceMixture.background`): the light
+    that passes a ray's last sample lands on `colour`, a Laplace density of scale `scale` in
+    each channel, with coefficient the ray's transmittance `exp(log_transmittance)`."""
+
+    colour: tuple[float, float, float] = eqx.field(static=True)
+    scale: float = eqx.field(static=True)
+    log_transmittance: Float[Array, "*batch"]
+
+
+def colour_mixture(
+    level: LevelOutputs, temperature: ScalarLike = 1.0, background: Background | None = None
+) -> ColourMixture:
     """The colour mixture of one level's render (a model with mixture heads), its scales
-    multiplied by `temperature`."""
+    multiplied by `temperature`.
+
+    Without `background`, the coefficients are the weights normalised over the samples (eq. 6).
+    With it, as the colour NLL of a mixture with a background component scores a pixel: the
+    samples' unnormalised weights and the transmittance, with the background as one more
+    component after the samples (its scale multiplied by `temperature` too).
+    """
     beta = level.field.beta
     if beta is None:
         raise ValueError(
             "this model has no mixture heads (the mip-NeRF baseline): it predicts no distribution"
         )
-    count = level.weights.shape[-1]
-    flat = level.weights.reshape(-1, count)
-    coefficients = jax.vmap(mixing_coefficients)(flat).reshape(level.weights.shape)
-    return ColourMixture(coefficients, level.field.rgb, _scaled(beta, temperature))
+    if background is None:
+        count = level.weights.shape[-1]
+        flat = level.weights.reshape(-1, count)
+        coefficients = jax.vmap(mixing_coefficients)(flat).reshape(level.weights.shape)
+        return ColourMixture(coefficients, level.field.rgb, _scaled(beta, temperature))
+    light = jnp.exp(background.log_transmittance)[..., None]
+    # w_j and T sum to one up to rounding; dividing by their sum makes it exact.
+    masses = jnp.concatenate([level.weights, light], axis=-1)
+    coefficients = masses / jnp.sum(masses, axis=-1, keepdims=True)
+
+    def appended(per_sample, value):  # one more component after the samples
+        shape = (*per_sample.shape[:-2], 1, per_sample.shape[-1])
+        last = jnp.broadcast_to(jnp.asarray(value, per_sample.dtype), shape)
+        return jnp.concatenate([per_sample, last], axis=-2)
+
+    location = appended(level.field.rgb, background.colour)
+    return ColourMixture(coefficients, location, _scaled(appended(beta, background.scale), temperature))
+
+
+def _background(model: MixNeRF, level: LevelOutputs, rays: RayBundle) -> Background | None:
+    """The background component of `model`'s colour mixture for `level`, as its colour NLL
+    weights it (the log transmittance over the level's densities); `None` without one."""
+    colour = getattr(model.mixture, "background", None)
+    if colour is None:
+        return None
+    norm = jnp.linalg.norm(rays.directions, axis=-1)
+    flat_density = level.field.density.reshape(-1, level.field.density.shape[-1])
+    flat_edges = level.t_edges.reshape(-1, level.t_edges.shape[-1])
+    log_t = jax.vmap(log_transmittance)(flat_density, flat_edges, norm.reshape(-1))
+    return Background(tuple(colour), model.mixture.background_scale, log_t.reshape(level.weights.shape[:-1]))
 
 
 def predictive(
@@ -660,7 +704,7 @@ def predictive(
     colour_from = outputs.coarse if colour_level == "coarse" else outputs.fine
     depth_from = outputs.coarse if depth_level == "coarse" else outputs.fine
     return Predictive(
-        colour=colour_mixture(colour_from, temperature),
+        colour=colour_mixture(colour_from, temperature, _background(model, colour_from, rays)),
         depth=TerminationDistribution(depth_from.weights, depth_from.t_edges),
         rgb=outputs.fine.rgb,
         render_depth=outputs.fine.depth,
