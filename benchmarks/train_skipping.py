@@ -5,14 +5,20 @@ For each seed, the same config trains twice in fresh processes, one after the ot
 the quick start keeps no occupancy grid) and skipping (`occupancy.enabled=true
 occupancy.train_skipping=true` and any `--skip-set` overrides: the grid's upkeep, its final
 threshold choice and the skipping renders count against skipping). The table gives,
-per seed and mode: field evaluations per step after the grid's warm-up (from
-`train_log.jsonl`), the median seconds per step (steps after the 20th), the wall time of the
-whole command, and the final validation and test PSNR (`metrics.json`); then the paired
-ratios (dense / skipping) and the paired PSNR differences (skipping - dense, Student-t 95%).
+per seed and mode: field evaluations per step (the mean over the logged steps of
+`train_log.jsonl`, the steps before the grid's warm-up counted as dense), the median seconds
+per step (steps after the 20th), the wall time of the whole command, and the final validation
+and test PSNR (`metrics.json`); then the paired ratios (dense / skipping) and the paired PSNR
+differences (skipping - dense, Student-t 95%).
+
+`--existing SEED DENSE_DIR SKIPPING_DIR` (repeatable) tabulates run folders trained earlier
+instead of training: evaluations and PSNRs only, since their seconds were not measured side by
+side (the time columns say `not timed`).
 
     python benchmarks/train_skipping.py --seeds 0 1 2                      # the quick start
     python benchmarks/train_skipping.py --no-compilation-cache             # what a first run costs
     python benchmarks/train_skipping.py --config blender4_grid --seeds 0 --set data.data_dir='"../shared/data"'
+    python benchmarks/train_skipping.py --existing 2 runs/a/seed_2 runs/b/seed_2 --out OUT
 
 Output: `--out` (default `benchmarks/results/train_skipping_<backend>`) `.json` and `.md`.
 """
@@ -52,6 +58,15 @@ def train(
     wall = time.perf_counter() - start
     if finished.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed:\n{finished.stderr[-3000:]}")
+    return figures(run_dir, seed, mode, wall)
+
+
+def figures(run_dir: Path, seed: int, mode: str, wall: float | None) -> dict[str, Any]:
+    """A finished run folder's figures; `wall` `None` for a run whose seconds are not compared
+    (its median step time is then left out as well)."""
+    for name in ("train_log.jsonl", "metrics.json", "config.json"):
+        if not (run_dir / name).is_file():
+            raise SystemExit(f"{run_dir} has no {name}: not a finished training run")
     log = [json.loads(line) for line in (run_dir / "train_log.jsonl").read_text().splitlines()]
     steps = [e for e in log if "psnr" in e]
     metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -64,7 +79,9 @@ def train(
         "seed": seed,
         "mode": mode,
         "wall_s": wall,
-        "median_step_s": statistics.median(1.0 / e["steps_per_s"] for e in steps if e["step"] > 20),
+        "median_step_s": (
+            None if wall is None else statistics.median(1.0 / e["steps_per_s"] for e in steps if e["step"] > 20)
+        ),
         "dense_evaluations_per_step": dense,
         "mean_evaluations_per_step": statistics.fmean(evaluations),
         "first_skipping_step": skipped_phase[0]["step"] if skipped_phase else None,
@@ -81,9 +98,11 @@ def table(runs: list[dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for run in runs:
+        step = "not timed" if run["median_step_s"] is None else f"{run['median_step_s'] * 1000:.1f} ms"
+        wall = "not timed" if run["wall_s"] is None else f"{run['wall_s']:.0f}"
         lines.append(
             f"| {run['seed']} | {run['mode']} | {run['mean_evaluations_per_step']:,.0f} | "
-            f"{run['median_step_s'] * 1000:.1f} ms | {run['wall_s']:.0f} | {run['val_psnr']:.2f} | {run['test_psnr']:.2f} |"
+            f"{step} | {wall} | {run['val_psnr']:.2f} | {run['test_psnr']:.2f} |"
         )
     by = {(r["seed"], r["mode"]): r for r in runs}
     seeds = sorted({r["seed"] for r in runs if (r["seed"], "dense") in by and (r["seed"], "skipping") in by})
@@ -93,8 +112,9 @@ def table(runs: list[dict[str, Any]]) -> str:
         ("median_step_s", "median seconds per step"),
         ("wall_s", "wall time"),
     ):
-        ratios = [by[(s, "dense")][key] / by[(s, "skipping")][key] for s in seeds]
-        lines.append(f"| {label} | " + " / ".join(f"{r:.2f}x" for r in ratios) + " |")
+        pairs = [(by[(s, "dense")][key], by[(s, "skipping")][key]) for s in seeds]
+        cells = ["not timed" if None in pair else f"{pair[0] / pair[1]:.2f}x" for pair in pairs]
+        lines.append(f"| {label} | " + " / ".join(cells) + " |")
     for split in ("val", "test"):
         key = f"{split}_psnr"
         found = paired_verdict(
@@ -117,10 +137,20 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="every run compiles its programs (what a first run costs); default: the commands' cache",
     )
+    parser.add_argument(
+        "--existing",
+        nargs=3,
+        action="append",
+        metavar=("SEED", "DENSE_DIR", "SKIPPING_DIR"),
+        help="tabulate finished run folders instead of training (repeatable; not timed)",
+    )
     args = parser.parse_args(argv)
     out = args.out or harness.RESULTS / f"train_skipping_{harness.platform_tag()}"
     runs = []
-    for seed in args.seeds:
+    for seed, dense_dir, skipping_dir in args.existing or []:
+        for mode, run_dir in (("dense", dense_dir), ("skipping", skipping_dir)):
+            runs.append(figures(Path(run_dir), int(seed), mode, None))
+    for seed in [] if args.existing else args.seeds:
         for mode in MODES:
             extra = [*args.set, *(args.skip_set if mode == "skipping" else [])]
             run_dir = args.runs_root / f"seed_{seed}_{mode}"
@@ -134,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
             "set": args.set,
             "skip_set": args.skip_set,
             "compilation_cache": not args.no_compilation_cache,
+            "existing": args.existing,
             "runs": runs,
         })
     harness.write_markdown(out.with_suffix(".md"), text)

@@ -1,7 +1,10 @@
 """`benchmarks/train_skipping.py`'s table on synthetic runs whose figures are worked out by hand."""
 
+import json
 import sys
 from pathlib import Path
+
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
@@ -31,3 +34,34 @@ def test_ratios_and_paired_differences_per_seed():
     # +0.1, +0.2, +0.3: mean 0.2, standard error 0.0577, half-width 4.303 x 0.0577 = 0.25.
     assert "| val PSNR, skipping - dense | +0.20 ± 0.25: level |" in text
     assert "| test PSNR, skipping - dense | -0.20 ± 0.25: level |" in text
+
+
+def _folder(root, name, evaluations, val, test):
+    """A finished run folder: 4 logged steps of 512 rays x (16 + 16) samples, the first two dense
+    (no sample counts), then the given counts."""
+    folder = root / name
+    folder.mkdir()
+    log = [{"step": 10 * (i + 1), "psnr": 20.0, "steps_per_s": 5.0} for i in range(4)]
+    for entry, count in zip(log[2:], evaluations, strict=True):
+        entry["field_evaluations"] = count
+    (folder / "train_log.jsonl").write_text("".join(json.dumps(e) + "\n" for e in log))
+    (folder / "metrics.json").write_text(json.dumps({"val": {"psnr": val}, "test": {"psnr": test}}))
+    config = {"train": {"batch_size": 512}, "model": {"num_coarse_samples": 16, "num_fine_samples": 16}}
+    (folder / "config.json").write_text(json.dumps(config))
+    return folder
+
+
+def test_existing_runs_are_tabulated_without_times(tmp_path):
+    dense = _folder(tmp_path, "dense", [16384, 16384], 18.0, 17.5)
+    skipping = _folder(tmp_path, "skip", [4096, 2048], 17.5, 17.25)
+    out = tmp_path / "out"
+    assert train_skipping.main(["--existing", "3", str(dense), str(skipping), "--out", str(out)]) == 0
+    text = out.with_suffix(".md").read_text()
+    # Dense steps count 16,384 each; the skipping run's mean is (2 x 16,384 + 4,096 + 2,048) / 4 = 9,728.
+    assert "| 3 | skipping | 9,728 | not timed | not timed | 17.50 | 17.25 |" in text
+    assert "| field evaluations per step | 1.68x |" in text
+    assert "| wall time | not timed |" in text
+    assert "| val PSNR, skipping - dense | -0.50: 1 seed: no verdict |" in text
+    (skipping / "metrics.json").unlink()
+    with pytest.raises(SystemExit, match="no metrics.json"):
+        train_skipping.main(["--existing", "3", str(dense), str(skipping), "--out", str(out)])
