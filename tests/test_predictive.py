@@ -413,8 +413,11 @@ def test_background_component_joins_the_predictive_mixture(tiny_config, tiny_sce
     reference_cdf = np.stack([np_channel_cdf(targets[:, c], coefficients, location[..., c], scale[..., c])
                               for c in range(3)], axis=-1)
     np.testing.assert_allclose(colour.cdf(jnp.asarray(targets)), reference_cdf, atol=2e-5)
-    # The mixture's mean is the coarse render over the white background.
+    # The mixture's mean is the coarse render over the white background, in the chunked pass too.
     np.testing.assert_allclose(colour.mean(), np.asarray(coarse.rgb), atol=2e-5)
+    maps = mx.uncertainty.predict_rays(model, rays, 256, targets=targets)
+    np.testing.assert_allclose(maps["colour_mean"], np.asarray(coarse.rgb), atol=2e-5)
+    np.testing.assert_allclose(maps["colour_cdf"], reference_cdf, atol=2e-5)
     # The training objective scores the same pixels with the same density.
     from mixnerf_eqx._nn.compositing import log_transmittance
 
