@@ -71,6 +71,14 @@ def figures(run_dir: Path, seed: int, mode: str, wall: float | None) -> dict[str
     steps = [e for e in log if "psnr" in e]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     config = json.loads((run_dir / "config.json").read_text())
+    if "psnr" not in (metrics.get("test") or {}):
+        raise SystemExit(f"{run_dir}/metrics.json has no test PSNR: not a finished training run")
+    trained = (config["train"]["seed"], bool(config.get("occupancy", {}).get("train_skipping", False)))
+    if trained != (seed, mode == "skipping"):
+        raise SystemExit(
+            f"{run_dir} trained seed {trained[0]} with occupancy.train_skipping = {str(trained[1]).lower()}; "
+            f"given as the {mode} run of seed {seed}"
+        )
     dense = config["train"]["batch_size"] * (config["model"]["num_coarse_samples"] + config["model"]["num_fine_samples"])
     # Dense steps log no sample counts: every sample of every ray is evaluated.
     evaluations = [e.get("field_evaluations", dense) for e in steps]
@@ -145,6 +153,20 @@ def main(argv: list[str] | None = None) -> int:
         help="tabulate finished run folders instead of training (repeatable; not timed)",
     )
     args = parser.parse_args(argv)
+    if args.existing:
+        names = ("seeds", "config", "set", "skip_set", "runs_root")
+        training_options = [
+            f"--{name.replace('_', '-')}" for name in names if getattr(args, name) != parser.get_default(name)
+        ]
+        if args.no_compilation_cache:
+            training_options.append("--no-compilation-cache")
+        if training_options:
+            parser.error(f"--existing trains nothing: drop {', '.join(training_options)}")
+        if args.out is None:
+            parser.error("--existing needs --out (the default file holds a timed comparison)")
+        seeds = [entry[0] for entry in args.existing]
+        if not all(seed.lstrip("-").isdigit() for seed in seeds) or len(set(seeds)) != len(seeds):
+            parser.error(f"--existing takes one whole-number SEED per pair, each once; got {seeds}")
     out = args.out or harness.RESULTS / f"train_skipping_{harness.platform_tag()}"
     runs = []
     for seed, dense_dir, skipping_dir in args.existing or []:

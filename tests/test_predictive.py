@@ -415,9 +415,11 @@ def test_background_component_joins_the_predictive_mixture(tiny_config, tiny_sce
     np.testing.assert_allclose(colour.cdf(jnp.asarray(targets)), reference_cdf, atol=2e-5)
     # The mixture's mean is the coarse render over the white background, in the chunked pass too.
     np.testing.assert_allclose(colour.mean(), np.asarray(coarse.rgb), atol=2e-5)
-    maps = mx.uncertainty.predict_rays(model, rays, 256, targets=targets)
+    maps = mx.uncertainty.predict_rays(model, rays, 300, targets=targets)  # the last chunk padded
     np.testing.assert_allclose(maps["colour_mean"], np.asarray(coarse.rgb), atol=2e-5)
     np.testing.assert_allclose(maps["colour_cdf"], reference_cdf, atol=2e-5)
+    # A temperature multiplies the background's scale as it does every other.
+    np.testing.assert_allclose(mx.predictive(model, rays, temperature=2.0).colour.scale[:, -1], 0.04, rtol=1e-6)
     # The training objective scores the same pixels with the same density.
     from mixnerf_eqx._nn.compositing import log_transmittance
 

@@ -36,7 +36,7 @@ def test_ratios_and_paired_differences_per_seed():
     assert "| test PSNR, skipping - dense | -0.20 ± 0.25: level |" in text
 
 
-def _folder(root, name, evaluations, val, test):
+def _folder(root, name, evaluations, val, test, *, seed=3, skipping=None):
     """A finished run folder: 4 logged steps of 512 rays x (16 + 16) samples, the first two dense
     (no sample counts), then the given counts."""
     folder = root / name
@@ -46,7 +46,11 @@ def _folder(root, name, evaluations, val, test):
         entry["field_evaluations"] = count
     (folder / "train_log.jsonl").write_text("".join(json.dumps(e) + "\n" for e in log))
     (folder / "metrics.json").write_text(json.dumps({"val": {"psnr": val}, "test": {"psnr": test}}))
-    config = {"train": {"batch_size": 512}, "model": {"num_coarse_samples": 16, "num_fine_samples": 16}}
+    config = {
+        "train": {"batch_size": 512, "seed": seed},
+        "model": {"num_coarse_samples": 16, "num_fine_samples": 16},
+        "occupancy": {"train_skipping": name == "skip" if skipping is None else skipping},
+    }
     (folder / "config.json").write_text(json.dumps(config))
     return folder
 
@@ -65,3 +69,20 @@ def test_existing_runs_are_tabulated_without_times(tmp_path):
     (skipping / "metrics.json").unlink()
     with pytest.raises(SystemExit, match="no metrics.json"):
         train_skipping.main(["--existing", "3", str(dense), str(skipping), "--out", str(out)])
+
+
+def test_existing_runs_must_be_what_they_are_given_as(tmp_path):
+    dense = _folder(tmp_path, "dense", [16384, 16384], 18.0, 17.5)
+    skipping = _folder(tmp_path, "skip", [4096, 2048], 17.5, 17.25)
+    out = str(tmp_path / "out")
+    swapped = "seed 3 with occupancy.train_skipping = true; given as the dense run of seed 3"
+    with pytest.raises(SystemExit, match=swapped):
+        train_skipping.main(["--existing", "3", str(skipping), str(dense), "--out", out])
+    with pytest.raises(SystemExit, match="given as the dense run of seed 4"):
+        train_skipping.main(["--existing", "4", str(dense), str(skipping), "--out", out])
+    for wrong in (["--out", out, "--seeds", "1"], ["--out", out, "--config", "blender4_grid"], []):
+        with pytest.raises(SystemExit):
+            train_skipping.main(["--existing", "3", str(dense), str(skipping), *wrong])
+    with pytest.raises(SystemExit):  # a seed given twice
+        train_skipping.main(["--existing", "3", str(dense), str(skipping), "--existing", "3", str(dense),
+                             str(skipping), "--out", out])

@@ -69,7 +69,12 @@ LEVELS = {"central": central_levels, "equal-tailed": equal_tailed_levels}
 
 
 def coverage(pit: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Per mass, the fraction of `pit`'s values (pixels x channels, pooled) inside the levels."""
+    """Per mass, the fraction of `pit`'s values (pixels x channels, pooled) inside the levels.
+
+    The values are clipped to [0, 1] first, as the levels are fitted: a float32 sum of
+    coefficients may round a little past 1, and a level of 1 is an end without bound, which
+    holds every value (until 2026-12-07 such values counted as misses)."""
+    pit = np.clip(pit, 0.0, 1.0)
     return np.array([np.mean((pit >= lo) & (pit <= hi)) for lo, hi in zip(lower, upper, strict=True)])
 
 
