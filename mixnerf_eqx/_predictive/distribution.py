@@ -3,8 +3,9 @@
 MixNeRF scores a ray's colour with a mixture of per-sample Laplace densities whose
 coefficients are the normalised blending weights (paper eqs. 4-6; a model trained with a
 background component adds it as one more component, weighted by the transmittance, and keeps
-the weights unnormalised, as its NLL did). Here that mixture is the object: its mean, per-channel quantiles and central intervals, standard deviation, the mode of
-its joint RGB density, and the entropy of its coefficients; and beside it the distribution of
+the weights unnormalised, as its NLL did). Here that mixture is the object: its mean,
+per-channel quantiles and central intervals, standard deviation, the mode of its joint RGB
+density, and the entropy of its coefficients; and beside it the distribution of
 where the ray terminates (the normalised weights, uniform within each interval), with its
 mean, quantiles, intervals and spread. `docs/predictive.md` says what each quantity means and
 which level's heads it uses.
