@@ -193,6 +193,8 @@ class TrainConfig:
 @dataclasses.dataclass(frozen=True)
 class OccupancyConfig:
     enabled: bool = False  # keep an occupancy grid and skip empty space and finished rays when rendering
+    render_skipping: bool = False  # renders of a trained run (its final evaluation, `eval`, `render`,
+    # `view`) skip with a grid built from the model, even where training keeps none (enabled = false)
     resolution: int = 128  # grid cells per axis
     box_radius: float = (
         0.0  # > 0: the grid spans [-r, r]^3 and nothing lies outside; 0: the training frusta's box
@@ -233,6 +235,11 @@ class OccupancyConfig:
     train_stop_transmittance: float = 1e-4  # 0: finished rays are evaluated in training
     train_headroom: float = 0.05  # share of the samples added to the live share measured
     train_budget_every: int = 10  # steps between measurements of the live share
+
+    @property
+    def renders_skip(self) -> bool:
+        """Whether a trained run's renders skip unless told otherwise (`--skipping auto`)."""
+        return self.enabled or self.render_skipping
 
 
 @dataclasses.dataclass(frozen=True)

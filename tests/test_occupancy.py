@@ -328,6 +328,26 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     assert choice["within_tolerance"] == (choice["psnr_drop_db"] <= 0.1)
     kept = [t for t in choice["trials"] if t["threshold"] == choice["threshold"]]
     assert choice["threshold"] == 0.0 or kept[0]["psnr_drop_db"] == choice["psnr_drop_db"]
+    # `render_skipping` alone: training keeps no grid (and trains the same parameters), and the
+    # final evaluation skips with a grid built from the trained model, its threshold chosen
+    # the same way.
+    rendering_only = dataclasses.replace(
+        plain,
+        occupancy=dataclasses.replace(plain.occupancy, render_skipping=True, resolution=16),
+        train=dataclasses.replace(plain.train, run_dir=plain.train.run_dir + "_render"),
+    )
+    c = fit(rendering_only, dataset=tiny_scene, progress=False, write_renders=False)
+    assert c.state.grid is None
+    for x, y in zip(
+        jax.tree_util.tree_leaves(eqx.filter(a.model, eqx.is_array)),
+        jax.tree_util.tree_leaves(eqx.filter(c.model, eqx.is_array)),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    render = c.metrics["render"]
+    assert render["skipping"] and render["threshold_choice"]["views"] == "val"
+    assert 0 < render["needed_evaluations_per_frame"] <= render["dense_evaluations_per_frame"]
+    assert abs(c.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
 
 
 @pytest.mark.parametrize(

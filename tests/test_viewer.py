@@ -200,6 +200,40 @@ def test_a_preview_of_a_training_camera_is_the_render_of_that_view(tiny_config, 
     assert np.abs(opacity[..., 0].astype(int) - to_uint8(want.acc[0]).astype(int)).max() <= 1
 
 
+def test_a_preview_that_skips_is_the_skipping_render_and_the_spreads_stay_dense(tiny_config, tiny_scene):
+    import jax
+
+    model = mx.training.init_train_state(tiny_config, tiny_scene).model
+    views = tiny_scene.test
+    rays = viewer_rays(camera_of_view(views, 0), views.width, tiny_scene)
+    flat = rays.reshape(-1)
+    occupancy = dataclasses.replace(tiny_config.occupancy, resolution=16, choose_threshold=False)
+    grid, _ = mx.runs.grid_for_rendering(occupancy, tiny_scene, model, key=jax.random.key(0))
+    # A threshold between the cells' densities: some cells are skipped, some kept.
+    grid = eqx.tree_at(lambda g: g.threshold, grid, np.float32(np.median(np.asarray(grid.density))))
+    skipping = mx.runs.make_skipping(occupancy, grid)
+    modes = (("colour", lambda r: r.rgb), ("opacity", lambda r: np.repeat(r.acc[..., None], 3, -1)))
+    for mode, read in modes:
+        want = read(mx.inference.render_rays(model, flat, 2048, skipping=skipping))
+        dense = read(mx.inference.render_rays(model, flat, 2048))
+        image = preview_image(model, rays, mode, tiny_scene.near, tiny_scene.far, skipping=skipping)
+        expected = to_uint8(want.reshape(views.height, views.width, 3)).astype(int)
+        assert np.abs(image.astype(int) - expected).max() <= 1
+        # The grid skips something the dense render does not (so the comparison above can fail).
+        assert np.abs(to_uint8(dense.reshape(views.height, views.width, 3)).astype(int) - expected).max() > 1
+    # The spread modes read the whole mixture: the same image with or without skipping.
+    near, far = tiny_scene.near, tiny_scene.far
+    spread = preview_image(model, rays, "colour spread", near, far)
+    assert np.array_equal(spread, preview_image(model, rays, "colour spread", near, far, skipping=skipping))
+    viewer = Viewer(model, tiny_scene, port=0, max_width=64, skipping=skipping)
+    try:
+        assert viewer.render(camera_of_view(views, 0), 64, "colour").shape == (64, 64, 3)
+        with pytest.raises(ValueError, match="a viewer that follows training renders densely"):
+            viewer.update(model, step=1)
+    finally:
+        viewer.stop()
+
+
 def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeypatch):
     """Preview widths, window shapes and camera poses all reuse one compiled dense render."""
     model = mx.training.init_train_state(tiny_config, tiny_scene).model
@@ -310,7 +344,7 @@ def test_the_view_command_prints_its_address_and_stops_on_ctrl_c(tiny_config, ti
         "from mixnerf_eqx.cli.view import main; sys.exit(main(sys.argv[1:]))"
     )
     process = subprocess.Popen(
-        [sys.executable, "-c", program, str(run_dir), "--port", "0", "--max-width", "64"],
+        [sys.executable, "-c", program, str(run_dir), "--port", "0", "--max-width", "64", "--skipping", "on"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -322,6 +356,9 @@ def test_the_view_command_prints_its_address_and_stops_on_ctrl_c(tiny_config, ti
         assert any("viewer of" in line and "http://127.0.0.1:" in line for line in lines), lines
         # The interval modes show conformal intervals fitted on the scene's validation views.
         assert any("interval modes: conformal intervals fitted on the 4 validation views" in line for line in lines)
+        # --skipping on: a grid built from the checkpoint, its threshold chosen on validation pixels.
+        skipping = [line for line in lines if line.startswith("skipping: density threshold")]
+        assert skipping and "validation pixels" in skipping[0]
         process.send_signal(signal.SIGINT)
         _, err = process.communicate(timeout=60)
     finally:

@@ -10,7 +10,10 @@ its training cameras define, whatever the viewer's field of view.
 Previews come in a fixed set of widths (`PREVIEW_WIDTHS`) and are rendered in chunks of a
 fixed size (`PREVIEW_CHUNK`, padding the smallest previews up to one chunk), so moving the
 camera, resizing the window or refining a coarse frame never compiles anything new: the
-dense render compiles once, the predictive pass once.
+dense render compiles once, the predictive pass once. A viewer of a trained model can skip empty
+space and finished rays in the colour, depth and opacity previews (`Skipping`, with a grid
+built from that model: `python -m mixnerf_eqx.view --skipping`); the spread and interval
+modes read the whole mixture and stay dense.
 """
 
 import dataclasses
@@ -30,6 +33,7 @@ from .._predictive.uncertainty import predict_rays
 from .._util.images import colourise_depth, to_uint8
 from ..data import Dataset, Views
 from .rendering import render_rays
+from .skipping import Skipping
 
 # Preview widths in pixels, coarse to fine: a frame is drawn at the first while the camera
 # moves and refined through the others while it is still.
@@ -151,6 +155,7 @@ def preview_image(
     far: float,
     visible: Bool[np.ndarray, "height width"] | None = None,
     recalibration: Recalibration | None = None,
+    skipping: Skipping | None = None,
 ) -> np.ndarray:
     """One preview of `rays` (batch shape `(height, width)`) as 8-bit RGB: the colour, the
     depth coloured from `near` (yellow) to `far` (blue), the opacity in grey, or the predictive
@@ -158,17 +163,25 @@ def preview_image(
     `COLOUR_SPREAD_MAX`) or depth spread (from 0 to a quarter of `far - near`), or the width
     of its 90% colour interval (mean over channels, from 0 to `4 COLOUR_SPREAD_MAX`) or depth
     interval (from 0 to `far - near`), recalibrated by `recalibration` (the model's own
-    intervals without one). Pixels where `visible` is false (`scene_facing`) are black."""
+    intervals without one). Pixels where `visible` is false (`scene_facing`) are black. With
+    `skipping`, the colour, depth and opacity are rendered with it (the other modes read the
+    whole mixture)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    image = _preview(model, rays, mode, near, far, recalibration)
+    image = _preview(model, rays, mode, near, far, recalibration, skipping)
     if visible is not None:
         image = np.where(visible[..., None], image, np.uint8(0))
     return image
 
 
 def _preview(
-    model: MixNeRF, rays: RayBundle, mode: str, near: float, far: float, recalibration: Recalibration | None
+    model: MixNeRF,
+    rays: RayBundle,
+    mode: str,
+    near: float,
+    far: float,
+    recalibration: Recalibration | None,
+    skipping: Skipping | None,
 ) -> np.ndarray:
     height, width = rays.batch_shape
     flat = _padded(rays, PREVIEW_CHUNK)
@@ -191,7 +204,7 @@ def _preview(
             spread, top = summary["depth_upper"][chosen] - summary["depth_lower"][chosen], far - near
         image = colourise_depth(spread[: height * width].reshape(height, width), 0.0, top)
         return to_uint8(image)
-    rendered = render_rays(model, flat, PREVIEW_CHUNK)
+    rendered = render_rays(model, flat, PREVIEW_CHUNK, skipping=skipping)
     if mode == "colour":
         image = rendered.rgb
     elif mode == "depth":
@@ -249,6 +262,8 @@ class Viewer:
       when `model` is `None` until the first `update`).
     - `recalibration`: the intervals the interval modes show (`mx.uncertainty.fit_recalibration` on the
       scene's validation views; the model's own without one).
+    - `skipping`: skip empty space and finished rays in the colour, depth and opacity previews
+      (a grid built from `model`, `mx.runs.grid_for_rendering`); it cannot follow `update`.
     """
 
     def __init__(
@@ -263,6 +278,7 @@ class Viewer:
         refresh_s: float = 2.0,
         mixture: bool | None = None,
         recalibration: Recalibration | None = None,
+        skipping: Skipping | None = None,
     ):
         import viser
 
@@ -272,6 +288,7 @@ class Viewer:
         self.widths = tuple(width for width in PREVIEW_WIDTHS if width <= max_width)
         self.refresh_s = refresh_s
         self.recalibration = recalibration
+        self.skipping = skipping
         self.frames = 0  # previews sent, over all clients
         self.frame_seconds: dict[int, float] = {}  # the last preview's time per width
         self._model, self._version, self._step = model, 0, None
@@ -349,6 +366,11 @@ class Viewer:
 
     def update(self, model: MixNeRF, step=None) -> None:
         """Shows `model` from now on (a new frame once the refresh interval has passed)."""
+        if self.skipping is not None:
+            raise ValueError(
+                "this viewer skips with a grid of the model it was given, which an update would leave "
+                "behind: a viewer that follows training renders densely (skipping=None)"
+            )
         self._model, self._step = model, step
         self._version += 1
 
@@ -371,7 +393,14 @@ class Viewer:
         rays = viewer_rays(camera, width, dataset)
         visible = scene_facing(camera, width, dataset)
         image = preview_image(
-            model, rays, mode or self.mode.value, dataset.near, dataset.far, visible, self.recalibration
+            model,
+            rays,
+            mode or self.mode.value,
+            dataset.near,
+            dataset.far,
+            visible,
+            self.recalibration,
+            self.skipping,
         )
         self.frame_seconds[width] = time.perf_counter() - started
         return image

@@ -703,7 +703,9 @@ def _final_report(
             write_view_renders(staging, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
 
     grid = skipping = choice = None
-    if state.grid is not None:
+    if config.occupancy.renders_skip:
+        # The run's own grid where training kept one; with `render_skipping` alone, a grid
+        # built here from the trained model, as `eval` builds one.
         grid, choice = grid_for_rendering(
             config.occupancy,
             dataset,

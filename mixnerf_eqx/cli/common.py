@@ -65,5 +65,5 @@ def add_skipping_argument(parser: argparse.ArgumentParser) -> None:
         choices=("auto", "on", "off"),
         default="auto",
         help="skip empty space and finished rays with an occupancy grid built from the checkpoint "
-        "(auto: if the run's occupancy.enabled)",
+        "(auto: if the run's occupancy.enabled or occupancy.render_skipping)",
     )

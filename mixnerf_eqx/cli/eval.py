@@ -134,7 +134,7 @@ def _skipping_for(run: Run, mode: str):
     """The grid, skipping options and threshold choice `--skipping` asks for, and its time."""
     started = time.perf_counter()
     config = run.config
-    if not (mode == "on" or (mode == "auto" and config.occupancy.enabled)):
+    if not (mode == "on" or (mode == "auto" and config.occupancy.renders_skip)):
         return None, None, None, 0.0
     grid, choice = grid_for_rendering(
         config.occupancy, run.dataset, run.model, key=jax.random.fold_in(run.state.key, run.step)

@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> dict:
     restored = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
     config = restored.config
     skipping = None
-    if args.skipping == "on" or (args.skipping == "auto" and config.occupancy.enabled):
+    if args.skipping == "on" or (args.skipping == "auto" and config.occupancy.renders_skip):
         grid, _ = grid_for_rendering(
             config.occupancy, restored.dataset, restored.model, key=jax.random.fold_in(restored.state.key, 0)
         )

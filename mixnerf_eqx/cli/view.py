@@ -4,7 +4,10 @@ Loads the run's config and its latest (or the given) checkpoint and serves a web
 (viser, the `viewer` extra) on a local port: the scene rendered from the browser's camera as
 colour, depth, opacity or, for MixNeRF, the predictive colour and depth spread; the training
 and test cameras as frustums with their images (a click jumps there). Frames are drawn coarse
-first and refined while the camera is still. Ctrl-C stops the server.
+first and refined while the camera is still. With `--skipping on` (or `auto` where the run's
+config asks for it: `occupancy.enabled` or `occupancy.render_skipping`) the colour, depth and
+opacity previews skip empty space and finished rays, with a grid built from the checkpoint and
+its threshold chosen as `eval` chooses it. Ctrl-C stops the server.
 """
 
 import argparse
@@ -12,14 +15,16 @@ import socket
 import sys
 import time
 
+import jax
+
 from .._inference.viewer import PREVIEW_WIDTHS, Viewer
 from .._predictive.recalibration import METHODS, Recalibration
 from .._predictive.uncertainty import fit_recalibration
-from .._runs.run_folder import restore_run
+from .._runs.run_folder import Run, grid_for_rendering, make_skipping, restore_run
 from .._util.compilation_cache import add_compilation_cache_argument
 from .._util.interrupt import raise_if_interrupted
 from .._util.typecheck import add_typecheck_argument
-from .common import add_run_arguments, run_command
+from .common import add_run_arguments, add_skipping_argument, run_command
 
 VIEWER_EXTRA = "the viewer needs viser: pip install 'mixnerf_eqx[viewer]'"
 
@@ -125,9 +130,29 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="the intervals the interval modes show, fitted on the scene's validation views: conformal "
         "(the default), isotonic, or raw (the model's own; also where the scene has no validation views)",
     )
+    add_skipping_argument(parser)
     add_typecheck_argument(parser)
     add_compilation_cache_argument(parser)
     return parser.parse_args(argv)
+
+
+def viewer_skipping(run: Run, mode: str):
+    """The skipping `--skipping` asks for (`None`: dense), its grid built from the run's model
+    and said in one line."""
+    occupancy = run.config.occupancy
+    if not (mode == "on" or (mode == "auto" and occupancy.renders_skip)):
+        return None
+    grid, choice = grid_for_rendering(
+        occupancy, run.dataset, run.model, key=jax.random.fold_in(run.state.key, run.step)
+    )
+    how = "from the config"
+    if choice is not None:
+        how = f"chosen on {'validation' if choice.views == 'val' else 'training'} pixels"
+    print(
+        f"skipping: density threshold {float(grid.threshold):.4g} ({how}), "
+        f"{float(grid.occupied_fraction()):.1%} of the grid occupied (colour, depth and opacity previews)"
+    )
+    return make_skipping(occupancy, grid)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         check_host(args.host)
         run = restore_run(args.run_dir, checkpoint=args.checkpoint, data_dir=args.data_dir)
         recalibration = viewer_recalibration(run, args.calibration)
+        skipping = viewer_skipping(run, args.skipping)
         viewer = Viewer(
             run.model,
             run.dataset,
@@ -145,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
             port=args.port,
             max_width=args.max_width,
             recalibration=recalibration,
+            skipping=skipping,
         )
         where = serving_line(viewer, args.port)
         print(f"viewer of {args.run_dir} (step {run.step}): {where}  (Ctrl-C to stop)", flush=True)
