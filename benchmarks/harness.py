@@ -327,8 +327,10 @@ class TrainingRun:
 
     With `occupancy.enabled`, the grid is kept up to date as `fit` keeps it (`mx.training.update_grid`
     every `occupancy.update_every` steps, compiled ahead too) and those updates count as
-    training time; `skipping()` gives the rendering options for evaluation, with the grid
-    refreshed in every cell as `fit` does before its final evaluation.
+    training time; `skipping()` gives the rendering options for evaluation where the config's
+    renders skip (`occupancy.enabled` or `occupancy.render_skipping`), with the grid (the kept
+    one, or a new one) refreshed in every cell as `fit` does before its final evaluation, its
+    threshold the config's (none chosen).
     """
 
     def __init__(self, config: Config, dataset: Dataset):
@@ -387,7 +389,7 @@ class TrainingRun:
 
     def skipping(self) -> mx.inference.Skipping | None:
         """Rendering options for evaluating now (`None`: dense), not counted as training."""
-        if self.state.grid is None:
+        if not self.config.occupancy.renders_skip:
             return None
         key = mx.training.occupancy_key(self.state.key, self.step + 1)
         occupancy = dataclasses.replace(self.config.occupancy, choose_threshold=False)
@@ -482,6 +484,7 @@ def model_summary(config: Config) -> dict[str, Any]:
         "batch_size": config.train.batch_size,
         "method": config.method,
         "occupancy": config.occupancy.enabled,
+        "render_skipping": config.occupancy.render_skipping,
         "max_steps": config.train.max_steps,
     }
 

@@ -5,6 +5,8 @@ numpy re-implementations of the cell lookup, and the dense renderer.
 """
 
 import dataclasses
+import json
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -348,6 +350,16 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     assert render["skipping"] and render["threshold_choice"]["views"] == "val"
     assert 0 < render["needed_evaluations_per_frame"] <= render["dense_evaluations_per_frame"]
     assert abs(c.metrics["test"]["psnr"] - a.metrics["test"]["psnr"]) < 0.1
+    assert render["grid_seconds"] > 0 and b.metrics["render"]["grid_seconds"] > 0
+    assert a.metrics["render"]["grid_seconds"] == 0 and not a.metrics["render"]["skipping"]
+    # `eval --skipping auto` (the default) of that run skips too, with a grid of its own.
+    from mixnerf_eqx.cli.eval import main as eval_main
+
+    out = Path(rendering_only.train.run_dir) / "eval_auto"
+    flags = ["--no-lpips", "--no-renders", "--no-progress", "--out", str(out)]
+    assert eval_main([rendering_only.train.run_dir, *flags]) == 0
+    written = json.loads((out / "metrics.json").read_text())["render"]
+    assert written["skipping"] and written["grid_seconds"] > 0
 
 
 @pytest.mark.parametrize(

@@ -232,6 +232,9 @@ def test_a_preview_that_skips_is_the_skipping_render_and_the_spreads_stay_dense(
             viewer.update(model, step=1)
     finally:
         viewer.stop()
+    for model_given, training in ((None, False), (model, True)):
+        with pytest.raises(ValueError, match="skipping needs the trained model its grid was built from"):
+            Viewer(model_given, tiny_scene, port=0, training=training, skipping=skipping)
 
 
 def test_moving_the_camera_compiles_nothing_new(tiny_config, tiny_scene, monkeypatch):
@@ -330,7 +333,12 @@ def test_pause_holds_training_between_steps_until_unticked(tiny_config, tiny_sce
 
 
 def _trained_run(tiny_config, tiny_scene, steps=60):
-    config = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, max_steps=steps))
+    # A small grid for `view --skipping on` (it changes nothing in training).
+    config = dataclasses.replace(
+        tiny_config,
+        train=dataclasses.replace(tiny_config.train, max_steps=steps),
+        occupancy=dataclasses.replace(tiny_config.occupancy, resolution=16),
+    )
     mx.fit(config, dataset=tiny_scene, progress=False, write_renders=False)
     return Path(config.train.run_dir)
 

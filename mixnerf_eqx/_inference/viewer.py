@@ -12,8 +12,10 @@ fixed size (`PREVIEW_CHUNK`, padding the smallest previews up to one chunk), so 
 camera, resizing the window or refining a coarse frame never compiles anything new: the
 dense render compiles once, the predictive pass once. A viewer of a trained model can skip empty
 space and finished rays in the colour, depth and opacity previews (`Skipping`, with a grid
-built from that model: `python -m mixnerf_eqx.view --skipping`); the spread and interval
-modes read the whole mixture and stay dense.
+built from that model: `python -m mixnerf_eqx.view --skipping on`); the spread and interval
+modes read the whole mixture and stay dense. With skipping, each level is one compiled program
+too where `occupancy.render_chunk_points > 0` (the default); with 0 its buffers are sized on
+the host, a compilation per size.
 """
 
 import dataclasses
@@ -284,6 +286,11 @@ class Viewer:
 
         if max_width not in PREVIEW_WIDTHS:
             raise ValueError(f"max_width must be one of {PREVIEW_WIDTHS}, got {max_width}")
+        if skipping is not None and (model is None or training):
+            raise ValueError(
+                "skipping needs the trained model its grid was built from: a viewer that follows "
+                "training renders densely (skipping=None)"
+            )
         self.dataset = dataset
         self.widths = tuple(width for width in PREVIEW_WIDTHS if width <= max_width)
         self.refresh_s = refresh_s

@@ -703,6 +703,7 @@ def _final_report(
             write_view_renders(staging, entry["view"], rendered, truth, near=dataset.near, far=dataset.far)
 
     grid = skipping = choice = None
+    grid_started = time.perf_counter()
     if config.occupancy.renders_skip:
         # The run's own grid where training kept one; with `render_skipping` alone, a grid
         # built here from the trained model, as `eval` builds one.
@@ -714,6 +715,7 @@ def _final_report(
             grid=state.grid,
         )
         skipping = make_skipping(config.occupancy, grid)
+    grid_seconds = time.perf_counter() - grid_started if skipping is not None else 0.0
     chunk = config.train.render_chunk if skipping is None else config.occupancy.chunk
     validation = None
     if dataset.val is not None:
@@ -739,7 +741,10 @@ def _final_report(
         },
         "test": result.means,
         "per_view": result.per_view,
-        "render": render_summary(result.counts, result.seconds, len(result.per_view), grid, choice),
+        "render": {
+            **render_summary(result.counts, result.seconds, len(result.per_view), grid, choice),
+            "grid_seconds": grid_seconds,
+        },
         "config": config_to_dict(config),
     }
     if write_renders:
