@@ -294,6 +294,13 @@ def test_skipping_renders_the_sphere_within_a_tenth_of_a_db_with_a_third_of_the_
     assert counts.padded_evaluations * 3 <= counts.dense_evaluations
 
 
+def _assert_same_parameters(a, b):
+    """Every array leaf of two models equal, bit for bit."""
+    leaves = [jax.tree_util.tree_leaves(eqx.filter(m, eqx.is_array)) for m in (a, b)]
+    for x, y in zip(*leaves, strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost(tiny_config, tiny_scene):
     steps = dict(max_steps=20, eval_every=0)
     plain = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, **steps))
@@ -304,12 +311,7 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     )
     a = fit(plain, dataset=tiny_scene, progress=False, write_renders=False)
     b = fit(with_grid, dataset=tiny_scene, progress=False, write_renders=False)
-    for x, y in zip(
-        jax.tree_util.tree_leaves(eqx.filter(a.model, eqx.is_array)),
-        jax.tree_util.tree_leaves(eqx.filter(b.model, eqx.is_array)),
-        strict=True,
-    ):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    _assert_same_parameters(a.model, b.model)
     render = b.metrics["render"]
     assert render["skipping"] and 0 <= render["occupied_fraction"] <= 1
     pixels = tiny_scene.test.height * tiny_scene.test.width
@@ -340,12 +342,7 @@ def test_training_with_a_grid_trains_the_same_parameters_and_reports_render_cost
     )
     c = fit(rendering_only, dataset=tiny_scene, progress=False, write_renders=False)
     assert c.state.grid is None
-    for x, y in zip(
-        jax.tree_util.tree_leaves(eqx.filter(a.model, eqx.is_array)),
-        jax.tree_util.tree_leaves(eqx.filter(c.model, eqx.is_array)),
-        strict=True,
-    ):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    _assert_same_parameters(a.model, c.model)
     render = c.metrics["render"]
     assert render["skipping"] and render["threshold_choice"]["views"] == "val"
     assert 0 < render["needed_evaluations_per_frame"] <= render["dense_evaluations_per_frame"]
