@@ -17,7 +17,6 @@ from jaxtyping import Array, Float
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, fit
-from mixnerf_eqx.inference import Skipping, render_rays
 from mixnerf_eqx._inference.occupancy import (
     empty_grid,
     frustum_box,
@@ -26,6 +25,7 @@ from mixnerf_eqx._inference.occupancy import (
 )
 from mixnerf_eqx._inference.skipping import _render_level, _sample_coarse
 from mixnerf_eqx._inference.threshold import psnr_drop, psnr_drop_bound
+from mixnerf_eqx.inference import Skipping, render_rays
 from mixnerf_eqx.metrics import psnr
 
 
