@@ -46,8 +46,9 @@ BOUND_STOPS = (1e-4, 1e-3, 1e-2, 3e-2, 0.1)
 
 
 def psnr(rendered: np.ndarray, truth: np.ndarray) -> float:
+    """Over every pixel given, pooled (any shape: pixels, or a stack of views)."""
     error = np.mean((np.asarray(rendered, np.float64) - np.asarray(truth, np.float64)) ** 2)
-    return float(-10.0 * np.log10(error))
+    return mx.metrics.mse_to_psnr(float(error))
 
 
 @eqx.filter_jit
