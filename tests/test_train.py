@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import TINY_SHARED_OVERRIDES
 
 import mixnerf_eqx as mx
 from mixnerf_eqx import ConfigError, fit
@@ -349,3 +350,51 @@ def test_resuming_with_another_config_names_the_runs_config_and_counts_the_rest(
     with pytest.raises(ConfigError, match=r"\(loss.lambda_depth: .* -> 0.5\); choose another") as caught:
         check_resumable(checkpoint, stored, same)
     assert "config named" not in str(caught.value)
+
+
+def test_a_resumed_run_keeps_the_box_it_began_with(tmp_path, tiny_scene):
+    """A grid field spans its run's training rays (`grid.box_radius = 0`); resumed with a scene
+    whose training rays span more (views added), it is read through the box it began with, as
+    its checkpoints record it, not stretched over the new one."""
+    overrides = [
+        *TINY_SHARED_OVERRIDES,
+        "grid.box_radius=0",
+        "grid.levels=2",
+        "grid.min_resolution=8",
+        "grid.max_resolution=16",
+        "grid.coarse_to_fine_steps=0",
+        "train.max_steps=4",
+        f'train.run_dir="{tmp_path / "run"}"',
+    ]
+    config = mx.load_config("builtin_grid", overrides)
+    began = fit(config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=2).model.field
+    box = (began.box_min, began.box_max)
+    checkpoint = latest_checkpoint(config.train.run_dir)
+    assert read_checkpoint_meta(checkpoint)["scene_box"] == [list(box[0]), list(box[1])]
+    train, test = tiny_scene.train, tiny_scene.test
+    more = dataclasses.replace(
+        train,
+        images=np.concatenate([train.images, test.images]),
+        camtoworlds=np.concatenate([train.camtoworlds, test.camtoworlds]),
+        depths=np.concatenate([train.depths, test.depths]),
+        ids=(*train.ids, *(100 + i for i in test.ids)),
+    )
+    wider = dataclasses.replace(tiny_scene, train=more)
+    assert mx.training.scene_box(wider) != box  # the premise: the added views span more
+    # The grid read back is the one saved, through the same box.
+    restored = mx.runs.restore_run(config.train.run_dir, dataset=tiny_scene)
+    assert (restored.model.field.box_min, restored.model.field.box_max) == box
+    assert eqx.tree_equal(restored.model.field, began)
+    resumed = fit(config, dataset=wider, progress=False, write_renders=False).model.field
+    assert (resumed.box_min, resumed.box_max) == box
+    recorded = read_checkpoint_meta(latest_checkpoint(config.train.run_dir))["scene_box"]
+    assert recorded == [list(box[0]), list(box[1])]
+    # A run whose checkpoints predate the record: its own training rays give the box again.
+    meta_path = latest_checkpoint(config.train.run_dir) / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    del meta["scene_box"]
+    meta_path.write_text(json.dumps(meta))
+    for other in mx.runs.checkpoints(config.train.run_dir)[:-1]:
+        shutil.rmtree(other)
+    old = mx.runs.restore_run(config.train.run_dir, dataset=wider).model.field
+    assert (old.box_min, old.box_max) == mx.training.scene_box(wider)

@@ -13,6 +13,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from .._nn.rays import Box
 from .._train.state import TrainState
 
 _PREFIX = "step_"
@@ -62,8 +63,18 @@ def _storable(state: TrainState) -> TrainState:
     return eqx.tree_at(lambda s: s.key, state, jax.random.key_data(state.key))
 
 
-def save_checkpoint(run_dir: str | Path, state: TrainState, *, config: dict[str, Any], keep: int = 2) -> Path:
+def save_checkpoint(
+    run_dir: str | Path,
+    state: TrainState,
+    *,
+    config: dict[str, Any],
+    scene_box: Box | None = None,
+    keep: int = 2,
+) -> Path:
     """Writes `state` as the checkpoint of step `state.step` and keeps the newest `keep`.
+
+    `scene_box` is the box the model was built with (`init_train_state`'s `box`), recorded so
+    that a resumed run reads its grid through the same box whatever scene it is handed.
 
     The files are written into a temporary folder that is renamed into place only when
     complete, so a crash mid-write leaves the previous checkpoint intact and no partial one.
@@ -80,7 +91,10 @@ def save_checkpoint(run_dir: str | Path, state: TrainState, *, config: dict[str,
             shutil.rmtree(staging)
         staging.mkdir()
         eqx.tree_serialise_leaves(staging / "state.eqx", _storable(state))
-        (staging / "meta.json").write_text(json.dumps({"step": step, "config": config}, indent=2))
+        meta: dict[str, Any] = {"step": step, "config": config}
+        if scene_box is not None:
+            meta["scene_box"] = [[float(v) for v in corner] for corner in scene_box]
+        (staging / "meta.json").write_text(json.dumps(meta, indent=2))
         for path in staging.iterdir():
             with open(path, "rb") as handle:
                 os.fsync(handle.fileno())
@@ -109,6 +123,35 @@ def read_checkpoint_meta(path: str | Path) -> dict[str, Any]:
     if not isinstance(values, dict) or "config" not in values:
         raise CheckpointError(f"{meta} is not a checkpoint's description (no config)")
     return values
+
+
+def recorded_box(path: str | Path) -> Box | None:
+    """The scene box the model of the checkpoint at `path` was built with; `None` for one
+    written before the box was recorded (its run's own training rays give it again)."""
+    meta = read_checkpoint_meta(path)
+    corners = meta.get("scene_box")
+    if corners is None:
+        return None
+    try:
+        low, high = ([float(v) for v in corner] for corner in corners)
+        if len(low) != 3 or len(high) != 3:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise CheckpointError(
+            f"{Path(path) / 'meta.json'}: its scene_box is not two corners of three numbers: {corners!r}"
+        ) from None
+    return (low[0], low[1], low[2]), (high[0], high[1], high[2])
+
+
+def newest_recorded_box(run_dir: str | Path) -> Box | None:
+    """The scene box recorded by the newest checkpoint of `run_dir` that says one (every
+    checkpoint of a run records the same box); `None` if none does."""
+    for path in reversed(_checkpoint_dirs(Path(run_dir))):
+        try:
+            return recorded_box(path)
+        except CheckpointError:
+            continue
+    return None
 
 
 def load_checkpoint(path: str | Path, like: TrainState) -> TrainState:

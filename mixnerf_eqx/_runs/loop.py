@@ -26,6 +26,7 @@ from .._config import Config, ConfigError, SettingWarning, config_to_dict, setti
 from .._inference.evaluation import Evaluation, evaluate
 from .._inference.rendering import Rendered
 from .._nn.model import MixNeRF, check_model_names
+from .._nn.rays import Box
 from .._predictive.uncertainty import predict_views
 from .._train.sharding import DataParallel, data_parallel_mesh
 from .._train.state import (
@@ -37,6 +38,7 @@ from .._train.state import (
     make_live_counter,
     make_train_step,
     occupancy_key,
+    scene_box,
     training_cells,
     training_rays,
     update_grid,
@@ -52,6 +54,7 @@ from .checkpoint import (
     CheckpointError,
     latest_checkpoint,
     load_latest_readable,
+    newest_recorded_box,
     remove_stale_staging,
     save_checkpoint,
 )
@@ -401,12 +404,17 @@ def _remove_if_unused(run_dir: Path) -> None:
         shutil.rmtree(run_dir, ignore_errors=True)
 
 
-def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) -> tuple[Config, TrainState]:
-    """A new state, or the run folder's newest readable checkpoint if it has one; and the
-    config the run goes on with (`continued_config`: more steps keep the decay horizon)."""
+def _start_state(
+    config: Config, dataset: Dataset, run_dir: Path, resume: bool
+) -> tuple[Config, TrainState, Box]:
+    """A new state, or the run folder's newest readable checkpoint if it has one; the config
+    the run goes on with (`continued_config`: more steps keep the decay horizon); and the
+    scene box its model spans (a resumed run's is the one it began with, whatever scene it is
+    handed now)."""
     remove_stale_staging(run_dir)
     if latest_checkpoint(run_dir) is None:
-        return config, init_train_state(config, dataset)
+        box = scene_box(dataset)
+        return config, init_train_state(config, dataset, box=box), box
     if not resume:
         raise ConfigError(f"{run_dir} already holds checkpoints; resume, or choose another train.run_dir")
     chosen = config
@@ -420,7 +428,9 @@ def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) 
         chosen = continued_config(config, meta["config"])
         check_resumable(path, meta["config"], chosen)
 
-    found = load_latest_readable(run_dir, init_train_state(config, dataset), check=same_run)
+    # A checkpoint written before boxes were recorded: its run's own training rays give it.
+    box = newest_recorded_box(run_dir) or scene_box(dataset)
+    found = load_latest_readable(run_dir, init_train_state(config, dataset, box=box), check=same_run)
     if found is None:
         raise CheckpointError(
             f"no checkpoint in {run_dir / 'checkpoints'} can be read; move the folder away to start again"
@@ -433,7 +443,7 @@ def _start_state(config: Config, dataset: Dataset, run_dir: Path, resume: bool) 
         )
         longer = init_train_state(chosen, dataset)
         state = dataclasses.replace(state, optimizer=longer.optimizer, learning_rate=longer.learning_rate)
-    return chosen, state
+    return chosen, state, box
 
 
 def _evaluation_ids(config: Config, dataset: Dataset) -> list[int]:
@@ -575,7 +585,7 @@ def _fit_holding(
     dataset = load_dataset(config.data) if dataset is None else dataset
     if loaded_here:
         _check_scored_size(config, dataset)
-    config, state = _start_state(config, dataset, run_dir, resume)
+    config, state, box = _start_state(config, dataset, run_dir, resume)
     config_dict = config_to_dict(config)
     (run_dir / "config.json").write_text(json.dumps(config_dict, indent=2))
     record = dataset_record(config, dataset)
@@ -638,21 +648,21 @@ def _fit_holding(
                 # No checkpoint inside a run of skipped steps: the last good one must stay the
                 # newest, so that a diverging run can be resumed from before the trouble began.
                 if checkpoint_now and not guard.streak:
-                    save_checkpoint(run_dir, state, config=config_dict)
+                    save_checkpoint(run_dir, state, config=config_dict, scene_box=box)
                     log.sync()
                 if on_step is not None:
                     on_step(state)
                 raise_if_interrupted()
     except KeyboardInterrupt:
         log.close()
-        path = save_checkpoint(run_dir, state, config=config_dict)
+        path = save_checkpoint(run_dir, state, config=config_dict, scene_box=box)
         print(f"\ninterrupted: checkpoint of step {int(state.step)} written to {path}; run again to resume")
         raise
     finally:
         log.close()
     done = int(state.step)
     if done != start or latest_checkpoint(run_dir) is None:
-        save_checkpoint(run_dir, state, config=config_dict)
+        save_checkpoint(run_dir, state, config=config_dict, scene_box=box)
     metrics = {"step": done, "skipped_steps": guard.total}
     if done >= train.max_steps:
         with _rendering_after_training(done, run_dir):

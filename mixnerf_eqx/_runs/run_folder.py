@@ -24,7 +24,14 @@ from .._nn.model import MixNeRF
 from .._train.state import TrainState, init_train_state, make_occupancy_grid
 from .._util.images import colourise_depth, save_png
 from ..data import Dataset, data_root, load_dataset
-from .checkpoint import CheckpointError, latest_checkpoint, load_checkpoint, load_latest_readable
+from .checkpoint import (
+    CheckpointError,
+    latest_checkpoint,
+    load_checkpoint,
+    load_latest_readable,
+    newest_recorded_box,
+    recorded_box,
+)
 
 _refresh_occupancy = jax.jit(refresh_occupancy)
 
@@ -167,7 +174,9 @@ def restore_run(
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, data_dir=data_dir))
     dataset = load_dataset(config.data) if dataset is None else dataset
     check_dataset(run_dir, config, dataset)
-    like = init_train_state(config, dataset)
+    # The box the run's model was built with, as its checkpoints record it.
+    box = recorded_box(checkpoint) if checkpoint is not None else newest_recorded_box(run_dir)
+    like = init_train_state(config, dataset, box=box)
     if checkpoint is not None:
         return Run(config, dataset, load_checkpoint(checkpoint, like), Path(checkpoint))
     found = load_latest_readable(run_dir, like)

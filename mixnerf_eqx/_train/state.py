@@ -117,7 +117,9 @@ def init_key(config: Config) -> PRNGKey:
 _build_model_compiled = eqx.filter_jit(build_model)
 
 
-def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = None) -> TrainState:
+def init_train_state(
+    config: Config, dataset: Dataset, *, key: PRNGKey | None = None, box: Box | None = None
+) -> TrainState:
     """The state a run starts from.
 
     **Arguments:**
@@ -127,6 +129,9 @@ def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = 
       training rays' box).
     - `key`: the root key; default `init_key(config)`. It is split into the model's
       initialisation key and the run's training key.
+    - `box`: the box a grid field spans when `grid.box_radius = 0`; default the training
+      rays' (`scene_box(dataset)`). A resumed run passes the one it began with (its
+      checkpoints record it), since another scene's training rays may span another.
 
     **Returns:**
 
@@ -138,7 +143,7 @@ def init_train_state(config: Config, dataset: Dataset, *, key: PRNGKey | None = 
         key=model_key,
         frustum=dataset.frustum,
         white_background=dataset.white_background,
-        scene_box=scene_box(dataset),
+        scene_box=scene_box(dataset) if box is None else box,
     )
     optim = config.optim
     horizon = optim.decay_steps or config.train.max_steps
