@@ -352,21 +352,28 @@ def test_resuming_with_another_config_names_the_runs_config_and_counts_the_rest(
     assert "config named" not in str(caught.value)
 
 
+def _small_grid_config(tmp_path, *overrides):
+    """The grid quick start, tiny, on the training rays' box (`grid.box_radius = 0`)."""
+    return mx.load_config(
+        "builtin_grid",
+        [
+            *TINY_SHARED_OVERRIDES,
+            "grid.box_radius=0",
+            "grid.levels=2",
+            "grid.min_resolution=8",
+            "grid.max_resolution=16",
+            "train.max_steps=4",
+            f'train.run_dir="{tmp_path / "run"}"',
+            *overrides,
+        ],
+    )
+
+
 def test_a_resumed_run_keeps_the_box_it_began_with(tmp_path, tiny_scene):
     """A grid field spans its run's training rays (`grid.box_radius = 0`); resumed with a scene
     whose training rays span more (views added), it is read through the box it began with, as
     its checkpoints record it, not stretched over the new one."""
-    overrides = [
-        *TINY_SHARED_OVERRIDES,
-        "grid.box_radius=0",
-        "grid.levels=2",
-        "grid.min_resolution=8",
-        "grid.max_resolution=16",
-        "grid.coarse_to_fine_steps=0",
-        "train.max_steps=4",
-        f'train.run_dir="{tmp_path / "run"}"',
-    ]
-    config = mx.load_config("builtin_grid", overrides)
+    config = _small_grid_config(tmp_path, "grid.coarse_to_fine_steps=0")
     began = fit(config, dataset=tiny_scene, progress=False, write_renders=False, stop_after=2).model.field
     box = (began.box_min, began.box_max)
     checkpoint = latest_checkpoint(config.train.run_dir)
@@ -398,3 +405,14 @@ def test_a_resumed_run_keeps_the_box_it_began_with(tmp_path, tiny_scene):
         shutil.rmtree(other)
     old = mx.runs.restore_run(config.train.run_dir, dataset=wider).model.field
     assert (old.box_min, old.box_max) == mx.training.scene_box(wider)
+
+
+def test_a_run_given_more_steps_keeps_its_models_schedule(tmp_path, tiny_scene):
+    """The grid's coarse-to-fine reveal given as a fraction of the run lasts that fraction of
+    the steps the run began with when it is continued past them, as the learning rate's decay
+    does (`test_schedules_given_as_fractions_of_the_run`)."""
+    config = _small_grid_config(tmp_path, "grid.coarse_to_fine_steps=0", "grid.coarse_to_fine_fraction=0.5")
+    began = fit(config, dataset=tiny_scene, progress=False, write_renders=False)
+    assert began.model.field.coarse_to_fine_steps == 2
+    longer = fit(_with_train(config, max_steps=8), dataset=tiny_scene, progress=False, write_renders=False)
+    assert longer.model.field.coarse_to_fine_steps == 2

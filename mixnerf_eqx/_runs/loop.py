@@ -53,6 +53,7 @@ from ..data import Dataset, evenly_spaced, load_dataset
 from .checkpoint import (
     CheckpointError,
     latest_checkpoint,
+    load_checkpoint,
     load_latest_readable,
     newest_recorded_box,
     remove_stale_staging,
@@ -435,15 +436,17 @@ def _start_state(
         raise CheckpointError(
             f"no checkpoint in {run_dir / 'checkpoints'} can be read; move the folder away to start again"
         )
-    state = training_cells(found[0], config.occupancy)
+    state, path = found
     if chosen is not config:
         print(
             f"continuing past the {chosen.optim.decay_steps} steps the run began with: the learning "
             f"rate stays at optim.lr_final = {chosen.optim.lr_final:g} (optim.decay_steps)"
         )
-        longer = init_train_state(chosen, dataset)
-        state = dataclasses.replace(state, optimizer=longer.optimizer, learning_rate=longer.learning_rate)
-    return chosen, state, box
+        # Read again into the state of the config the run goes on with: every schedule keeps the
+        # horizon the run began with, the model's own among them (a coarse-to-fine reveal given
+        # as a fraction of the run), not only the learning rate's.
+        state = load_checkpoint(path, init_train_state(chosen, dataset, box=box))
+    return chosen, training_cells(state, config.occupancy), box
 
 
 def _evaluation_ids(config: Config, dataset: Dataset) -> list[int]:
