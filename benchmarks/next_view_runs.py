@@ -72,10 +72,6 @@ def candidates_of(run: mx.runs.Run) -> Views:
     taken = set(run.dataset.train.ids) | set(run.dataset.test.ids)
     taken |= set() if run.dataset.val is None else set(run.dataset.val.ids)
     keep = [index for index, view in enumerate(wide.val.ids) if view not in taken]
-    if len(keep) < max(BUDGETS):
-        raise SystemExit(
-            f"{run.dataset.name}: {len(keep)} candidates, fewer than {max(BUDGETS)} views to add"
-        )
     return wide.val.select(keep)
 
 
@@ -108,7 +104,7 @@ class Continuations:
             # rays' box, which a continuation on more views must keep (`init_train_state`).
             meta["scene_box"] = [list(corner) for corner in mx.training.scene_box(self.run.dataset)]
             meta_path.write_text(json.dumps(meta, indent=2))
-        start = int(mx.runs.read_checkpoint_meta(source)["step"])
+        start = int(meta["step"])
         config = self.run.config
         config = dataclasses.replace(
             config,
